@@ -145,3 +145,27 @@ def test_mhclo_errors_name_the_file_and_the_problem(tmp_path):
         read_mhclo(short)
     with pytest.raises(FileNotFoundError, match="missing.mhclo"):
         read_mhclo(tmp_path / "missing.mhclo")
+
+
+def test_dressing_poses_body_and_garments_together(body, garments):
+    from agentdress_ros.garment.dressing import Dressing
+
+    dressing = Dressing(body, [garments["tshirt"], garments["trousers"]], dtype=np.float64)
+    dressing.pose(np.zeros((body.n_bones, 3)))
+    for rest, posed in zip(dressing.garment_rest, dressing.garment_vertices):
+        np.testing.assert_allclose(posed, rest, atol=1e-12)
+    # a rotated forearm carries the long-sleeve cuff with it, rigidly where the sleeve is bound to it alone
+    sleeve = Dressing(body, [garments["longsleeve"]], dtype=np.float64)
+    forearm = body.bone_index("LeftForeArm")
+    rotvecs = np.zeros((body.n_bones, 3))
+    rotvecs[forearm] = [0.0, 0.0, 1.2]
+    transforms = sleeve.pose(rotvecs)
+    garment = garments["longsleeve"]
+    rigid = (garment.skin_indices[:, 0] == forearm) & (garment.skin_weights[:, 0] == 1.0)
+    assert rigid.sum() > 20
+    rest = sleeve.garment_rest[0][rigid]
+    expected = rest @ transforms[forearm, :, :3].T + transforms[forearm, :, 3]
+    np.testing.assert_allclose(sleeve.garment_vertices[0][rigid], expected, atol=1e-12)
+    # a new shape refits the garments and keeps the buffers' sizes
+    sleeve.set_shape([1.0, 0.7, 0.9, 0.9, 0.9, 0.5])
+    assert sleeve.garment_vertices[0].shape == (garment.n_vertices, 3)
