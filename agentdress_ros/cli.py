@@ -21,6 +21,32 @@ def _demo_png(args) -> int:
     return 0
 
 
+def _build(args) -> int:
+    import json
+
+    from .build.builder import BuildConfig, build_database
+
+    config = BuildConfig(
+        garment=args.garment,
+        garment_vertices=args.vertices,
+        anchors=args.anchors,
+        shapes=args.shapes,
+        components=args.components,
+        examples=args.examples,
+        sequence_frames=args.sequence_frames,
+        holdout_anchors=args.holdout_anchors,
+        pose_every=args.pose_every,
+        clips=[str(p) for p in args.clips],
+        procedural=args.procedural,
+        drape=json.loads(args.drape) if args.drape else {},
+        seed=args.seed,
+    )
+    report = build_database(config, args.out, workers=args.workers, scheduler=args.scheduler,
+                            progress=not args.quiet)
+    print(json.dumps({"database": str(args.out), **report}, indent=2))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="agentdress", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -31,6 +57,27 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--vertices", type=int, default=None, help="garment vertex count (default per template)")
     bench.add_argument("--repeats", type=int, default=500)
     bench.set_defaults(run=_bench)
+
+    build = commands.add_parser("build", help="build a garment database from newton drapes (resumable)")
+    build.add_argument("--garment", default="tshirt", help="garment template (tshirt, longsleeve, trousers)")
+    build.add_argument("--vertices", type=int, default=3000, help="garment vertex count")
+    build.add_argument("--anchors", type=int, default=32, help="anchor poses N (clothing shape models)")
+    build.add_argument("--shapes", type=int, default=17, help="training shapes per anchor: 1, 5, 9, 13 or 17")
+    build.add_argument("--components", type=int, default=5, help="PCA components per shape model")
+    build.add_argument("--examples", type=int, default=64, help="pose-model example drapes at beta0")
+    build.add_argument("--sequence-frames", type=int, default=60, help="frames of the simulated sequence")
+    build.add_argument("--holdout-anchors", type=int, default=4, help="anchors also draped on a held-out shape")
+    build.add_argument("--pose-every", type=int, default=4, help="take one clip pose every this many frames")
+    build.add_argument("--clips", nargs="*", default=[], help="CMU .bvh clips for the pose set")
+    build.add_argument("--procedural", nargs="*", default=["idle", "walk", "reach", "sweep", "wipe", "wave", "squat"],
+                       help="procedural motions for the pose set")
+    build.add_argument("--drape", default="", help="JSON object of DrapeSettings overrides")
+    build.add_argument("--workers", type=int, default=2, help="local worker processes (0: in this process)")
+    build.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
+    build.add_argument("--seed", type=int, default=0)
+    build.add_argument("--quiet", action="store_true", help="no progress bar")
+    build.add_argument("--out", required=True, help="database file to write (.h5)")
+    build.set_defaults(run=_build)
 
     demo = commands.add_parser("demo-png", help="render dressed, posed bodies at three shapes to a PNG")
     demo.add_argument("--out", default="out/dressed_bodies.png")

@@ -1,0 +1,102 @@
+"""One unit of build work: drape the garment on one body shape in one pose, stored as one file.
+
+Workers (local processes or a Dask cluster) run `run_drape_job`; the builder writes each result atomically under
+`<database>.work/drapes/`, so a killed build loses at most the drapes in flight and a rerun skips finished ones.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+# Per-process caches: a worker builds the body and each garment once, whatever number of jobs it runs.
+_BODY = None
+_GARMENTS: dict = {}
+
+
+@dataclass(frozen=True)
+class DrapeJob:
+    kind: str  # "anchor", "example" or "sequence"
+    index: int  # anchor / example / frame index
+    shape_index: int  # index into the training shapes (0 = beta0)
+    pose: np.ndarray  # (B, 3) rotation vectors
+    beta: np.ndarray  # (6,)
+    garment: str
+    garment_vertices: int
+    settings: dict  # DrapeSettings fields
+
+    @property
+    def key(self) -> str:
+        return f"{self.kind}_{self.index:04d}_{self.shape_index:02d}"
+
+
+def _body_and_garment(name: str, n_vertices: int):
+    global _BODY
+    from ..body import AnnyBody
+    from ..garment import make_garment
+
+    if _BODY is None:
+        _BODY = AnnyBody()
+    if (name, n_vertices) not in _GARMENTS:
+        _GARMENTS[(name, n_vertices)] = make_garment(name, _BODY, n_vertices)
+    return _BODY, _GARMENTS[(name, n_vertices)]
+
+
+def posed_scene(body, garment, beta, pose):
+    """(garment rest (V, 3), garment skinned to pose (V, 3), body vertices (N, 3), body faces (G, 3)) at beta."""
+    from ..body.kinematics import linear_blend_skinning
+
+    shape = body.shape(beta)
+    transforms, _ = body.pose(shape, pose)
+    rest = garment.rest_vertices(body, shape)
+    warm = linear_blend_skinning(rest, garment.skin_indices, garment.skin_weights, transforms, np.empty_like(rest))
+    posed_body = body.posed_vertices(shape, transforms)
+    ids = body.body_vertex_ids
+    remap = np.full(len(posed_body), -1)
+    remap[ids] = np.arange(len(ids))
+    return rest, warm, posed_body[ids], remap[body.body_faces]
+
+
+def run_drape_job(job: DrapeJob) -> dict:
+    """Drape one job (in any process); returns the drape (V, 3) float64 and its diagnostics."""
+    from ..sim import DrapeSettings, drape
+
+    body, garment = _body_and_garment(job.garment, job.garment_vertices)
+    rest, warm, body_vertices, body_faces = posed_scene(body, garment, job.beta, job.pose)
+    result = drape(warm, garment.faces, body_vertices, body_faces, DrapeSettings(**job.settings), rest_vertices=rest)
+    stats = {k: v for k, v in asdict(result).items() if k != "vertices" and np.isscalar(v)}
+    return {"key": job.key, "vertices": np.asarray(result.vertices, dtype=np.float64), "stats": stats}
+
+
+class DrapeStore:
+    """Finished drapes of one build, one `.npz` per job under `folder`, written atomically."""
+
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    def path(self, key: str) -> Path:
+        return self.folder / f"{key}.npz"
+
+    def has(self, key: str) -> bool:
+        return self.path(key).is_file()
+
+    def save(self, result: dict) -> None:
+        final = self.path(result["key"])
+        partial = final.with_name(final.name + f".{os.getpid()}.partial")
+        with open(partial, "wb") as handle:
+            np.savez(handle, vertices=result["vertices"], **{f"stat_{k}": v for k, v in result["stats"].items()})
+        os.replace(partial, final)  # a reader never sees half a drape
+
+    def load(self, key: str) -> np.ndarray:
+        try:
+            with np.load(self.path(key)) as data:
+                return data["vertices"]
+        except (OSError, ValueError, KeyError) as error:
+            raise ValueError(f"{self.path(key)}: unreadable drape ({error}); delete it and rerun the build") from None
+
+    def stats(self, key: str) -> dict:
+        with np.load(self.path(key)) as data:
+            return {k[5:]: data[k].item() for k in data.files if k.startswith("stat_")}
