@@ -184,7 +184,7 @@ def read_database(path) -> Database:
     with h5:
         version = h5.attrs.get("schema_version")
         if version != SCHEMA_VERSION:
-            raise DatabaseError(f"{path}: schema_version is {version!r}, this reader understands {SCHEMA_VERSION}")
+            raise DatabaseError(f"{path}: schema_version is {version}, this reader understands {SCHEMA_VERSION}")
         values, sizes = {}, {}
         for fields, required in ((FIELDS, True), (OPTIONAL_FIELDS, False)):
             for name, attr, dtype, spec in fields:
