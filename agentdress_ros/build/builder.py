@@ -54,25 +54,27 @@ class BuildConfig:
 
 def _motion_poses(config: BuildConfig, body: AnnyBody, shape) -> np.ndarray:
     """Pose set (P, B, 3) from the CMU clips and the procedural motions, every `pose_every` frames, root removed."""
-    from ..motion import load_bvh_motion, make_motion
+    from ..motion.procedural import make_motion
+    from ..motion.retarget import load_cmu_motion
 
     poses = []
     for clip in config.clips:
-        motion = load_bvh_motion(clip, shape.heads, shape.tails)
+        motion = load_cmu_motion(clip, shape.heads, shape.tails)
         poses.append(motion.rotvecs[:: config.pose_every])
     for name in config.procedural:
         # procedural motions are generated at 30 fps, the rate the clips are sampled at (120 fps / 4)
-        poses.append(make_motion(name, duration=config.procedural_seconds, fps=30.0).rotvecs)
+        rest = (shape.heads, shape.tails)
+        poses.append(make_motion(name, duration=config.procedural_seconds, fps=30.0, rest=rest).rotvecs)
     return canonical_poses(np.concatenate(poses))
 
 
-def _sequence_poses(config: BuildConfig) -> np.ndarray:
-    from ..motion import make_motion
+def _sequence_poses(config: BuildConfig, shape) -> np.ndarray:
+    from ..motion.procedural import make_motion
 
     if config.sequence_frames <= 0:
         return np.zeros((0, 31, 3))
     motion = make_motion(config.sequence_motion, duration=config.sequence_frames / config.sequence_fps,
-                         fps=config.sequence_fps)
+                         fps=config.sequence_fps, rest=(shape.heads, shape.tails))
     return canonical_poses(motion.rotvecs[: config.sequence_frames])
 
 
@@ -107,7 +109,7 @@ def make_plan(config: BuildConfig, body: AnnyBody) -> dict:
         "region_dof": region_dof_influence(sensitivity, garment.regions),
         "anchors": anchors,
         "examples": examples,
-        "sequence": _sequence_poses(config),
+        "sequence": _sequence_poses(config, reference),
         "holdout_beta": holdout,
         "report": report,
     }

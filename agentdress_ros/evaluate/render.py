@@ -41,22 +41,23 @@ SKIN = (0.87, 0.72, 0.62)
 GARMENT_COLORS = {"tshirt": (0.2, 0.45, 0.8), "longsleeve": (0.75, 0.3, 0.25), "trousers": (0.25, 0.25, 0.3)}
 
 
-def render_scenes(path, scenes, titles, azimuth=-70.0, size=4.0):
-    """One panel per scene; a scene is a list of (vertices, faces, rgb). Writes a PNG to `path`."""
-    fig = plt.figure(figsize=(size * len(scenes), size * 1.5), dpi=110)
+def render_scenes(path, scenes, titles, azimuth=-70.0, size=3.2):
+    """One panel per scene, all at one scale; a scene is a list of (vertices, faces, rgb). Writes a PNG."""
+    fig = plt.figure(figsize=(size * len(scenes), size * 1.6), dpi=120)
+    half = 0.5 * max(np.ptp(np.concatenate([m[0] for m in meshes]), axis=0).max() for meshes in scenes)
     for i, (meshes, title) in enumerate(zip(scenes, titles)):
         ax = fig.add_subplot(1, len(scenes), i + 1, projection="3d")
         render_meshes(ax, meshes, azimuth=azimuth)
         allv = np.concatenate([m[0] for m in meshes])
         centre = 0.5 * (allv.min(0) + allv.max(0))
-        half = 0.55 * (allv.max(0) - allv.min(0)).max()
+        centre[2] = allv[:, 2].min() + half  # shared ground line: heights compare across panels
         ax.set_xlim(centre[0] - half, centre[0] + half)
         ax.set_ylim(centre[1] - half, centre[1] + half)
         ax.set_zlim(centre[2] - half, centre[2] + half)
-        ax.set_box_aspect((1, 1, 1))
+        ax.set_box_aspect((1, 1, 1), zoom=1.45)
         ax.set_axis_off()
         ax.set_title(title, fontsize=9)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0)
     fig.savefig(path)
     plt.close(fig)
     return path
