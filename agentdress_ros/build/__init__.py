@@ -1,0 +1,1 @@
+"""Offline stage: pose set, sensitivities, anchors, drape jobs, shape models, database build."""
