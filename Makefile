@@ -29,8 +29,8 @@ $(RUNTIME_STAMP): requirements/runtime.txt requirements/body.txt setup.py setup.
 		exit 1; fi
 	touch $@
 
-$(TEST_STAMP): requirements/test.txt $(RUNTIME_STAMP)
-	$(PIP) install -r requirements/test.txt
+$(TEST_STAMP): requirements/test.txt requirements/build.txt $(RUNTIME_STAMP)
+	$(PIP) install -r requirements/test.txt -r requirements/build.txt
 	touch $@
 
 test: setup-test

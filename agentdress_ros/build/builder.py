@@ -8,6 +8,7 @@ soon as it arrives. The database file is written last, atomically: a partial bui
 from __future__ import annotations
 
 import json
+import logging
 import platform
 import shlex
 import sys
@@ -166,7 +167,8 @@ def run_jobs(jobs, store: DrapeStore, workers: int = 2, scheduler: str | None = 
         from dask.distributed import Client, LocalCluster, as_completed
 
         cluster = None if scheduler else LocalCluster(n_workers=max(1, workers), threads_per_worker=1,
-                                                      processes=True, dashboard_address=None)
+                                                      processes=True, dashboard_address=None,
+                                                      silence_logs=logging.WARNING)
         with Client(scheduler or cluster) as client:
             futures = [client.submit(run_drape_job, job, key=f"drape-{job.key}-{id(store)}", pure=False)
                        for job in pending]
@@ -194,7 +196,7 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
         train_errors.append(np.linalg.norm(model.predict(plan["shapes"]) - drapes, axis=2).mean())
         if store.has(f"holdout_{s:04d}_00"):
             truth = store.load(f"holdout_{s:04d}_00")
-            holdout_errors.append(np.linalg.norm(model.predict(plan["holdout_beta"])[0] - truth, axis=2).mean())
+            holdout_errors.append(np.linalg.norm(model.predict(plan["holdout_beta"])[0] - truth, axis=1).mean())
     example = np.stack([store.load(f"example_{m:04d}_00") for m in range(len(plan["examples"]))])
     sequence = [store.load(f"sequence_{t:04d}_00") for t in range(len(plan["sequence"]))]
     drape_stats = [store.stats(p.stem) for p in sorted(store.folder.glob("*.npz"))]
@@ -207,6 +209,7 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
         drapes=len(drape_stats),
         drape_seconds_mean=float(np.mean([d.get("seconds", np.nan) for d in drape_stats])),
         drapes_converged=int(sum(bool(d.get("converged", False)) for d in drape_stats)),
+        drape_displacement_mean_mm=float(np.mean([d.get("displacement_mean", np.nan) for d in drape_stats]) * 1e3),
         drape_vertices_inside_body_max=int(max(d.get("inside_count", 0) for d in drape_stats)),
     )
     reference = body.shape(plan["beta0"])

@@ -1,0 +1,119 @@
+"""Ground-truth drapes (agentdress_ros.sim) with the real newton VBD solver on a small T-shirt.
+
+The drape tests need `newton` (pip install newton==1.8.0, the project's `build` extra) and are skipped without it;
+the first run also pays warp's one-time kernel compile (~30 s, cached in ~/.cache/warp).
+"""
+import importlib.util
+
+import numpy as np
+import pytest
+
+from agentdress_ros.sim import DrapeSettings, membrane_lame, triangle_stretch
+
+NEWTON = importlib.util.find_spec("newton") is not None
+needs_newton = pytest.mark.skipif(
+    not NEWTON, reason="newton is not installed: pip install newton==1.8.0 (the project's `build` extra)"
+)
+
+
+def test_lame_parameters_match_plane_stress_hooke_law():
+    """(mu, lambda) from (Y, nu) reproduce the plane-stress stiffness Y/(1-nu^2) [[1, nu, 0], [nu, 1, 0], [0, 0, (1-nu)/2]]."""
+    settings = DrapeSettings()
+    Y, nu = settings.stretch_stiffness, settings.poisson_ratio
+    assert (Y, nu) == (30.0, 0.3)
+    mu, lam = settings.lame
+    assert mu == pytest.approx(Y / (2 * (1 + nu)))
+    assert lam == pytest.approx(Y * nu / (1 - nu**2))
+    assert (mu, lam) == pytest.approx((11.538461538, 9.890109890))
+    # Isotropic law sigma = 2 mu eps + lambda tr(eps) I in Voigt form (eps_xx, eps_yy, 2 eps_xy).
+    lame_matrix = np.array([[2 * mu + lam, lam, 0.0], [lam, 2 * mu + lam, 0.0], [0.0, 0.0, mu]])
+    hooke = Y / (1 - nu**2) * np.array([[1.0, nu, 0.0], [nu, 1.0, 0.0], [0.0, 0.0, (1 - nu) / 2]])
+    np.testing.assert_allclose(lame_matrix, hooke, rtol=1e-12)
+    # Uniaxial stress recovers Young's modulus and Poisson ratio: strain = C^-1 (1, 0, 0).
+    strain = np.linalg.solve(lame_matrix, [1.0, 0.0, 0.0])
+    assert 1.0 / strain[0] == pytest.approx(Y)
+    assert -strain[1] / strain[0] == pytest.approx(nu)
+    with pytest.raises(ValueError):
+        membrane_lame(30.0, 1.0)
+
+
+def test_triangle_stretch_of_known_deformations():
+    rest = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    faces = np.array([[0, 1, 2]])
+    rotation = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(triangle_stretch(rest @ rotation.T + 5.0, rest, faces), [[1.0, 1.0]], atol=1e-12)
+    stretched = rest * np.array([1.1, 0.9, 1.0])
+    np.testing.assert_allclose(triangle_stretch(stretched, rest, faces), [[1.1, 0.9]], atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def scene(body):
+    """A ~1200-vertex T-shirt on the reference body in the rest pose: (rest, warm start, body vertices, faces)."""
+    from agentdress_ros.garment import make_garment
+    from agentdress_ros.garment.dressing import Dressing
+
+    garment = make_garment("tshirt", body, n_vertices=1200)
+    dressing = Dressing(body, [garment], dtype=np.float64)
+    dressing.pose(np.zeros((body.n_bones, 3)))
+    return (garment.faces, dressing.garment_rest[0].copy(), dressing.garment_vertices[0].copy(),
+            dressing.body_vertices.copy(), dressing.body_faces)
+
+
+@pytest.fixture(scope="module")
+def draped(scene):
+    from agentdress_ros.sim import drape
+
+    faces, rest, warm, body_vertices, body_faces = scene
+    return drape(warm, faces, body_vertices, body_faces, DrapeSettings(), rest_vertices=rest)
+
+
+@needs_newton
+def test_drape_converges_outside_the_body(draped):
+    settings = DrapeSettings()
+    assert draped.converged, f"no convergence in {draped.frames} frames (p99 speed {draped.percentile_speed} m/s)"
+    assert draped.frames < settings.max_frames
+    assert draped.percentile_speed < settings.speed_threshold
+    assert draped.inside_count == 0
+    assert draped.min_clearance > 0.0
+    assert np.isfinite(draped.vertices).all()
+
+
+@needs_newton
+def test_drape_strain_is_bounded(draped):
+    assert draped.strain_mean < 0.05
+    assert draped.strain_max < 0.5
+    assert draped.compression_max < 0.5
+
+
+@needs_newton
+def test_gravity_pulls_the_cloth_down_but_it_stays_on_the_body(scene, draped):
+    from agentdress_ros.garment.binding import signed_clearance
+
+    faces, rest, warm, body_vertices, body_faces = scene
+    drop = warm[:, 2].mean() - draped.vertices[:, 2].mean()
+    assert 0.002 < drop < 0.10, drop
+    assert draped.displacement_mean == pytest.approx(np.linalg.norm(draped.vertices - warm, axis=1).mean())
+    # It hangs on the shoulders: most of the shirt is still within a few cm of the skin, none fell off.
+    clearance = signed_clearance(draped.vertices, body_vertices, body_faces)
+    assert np.median(clearance) < 0.03
+    assert clearance.max() < 0.15
+
+
+@needs_newton
+def test_drape_is_deterministic_on_cpu(scene, draped):
+    from agentdress_ros.sim import drape
+
+    faces, rest, warm, body_vertices, body_faces = scene
+    again = drape(warm, faces, body_vertices, body_faces, DrapeSettings(), rest_vertices=rest)
+    assert again.frames == draped.frames
+    assert np.array_equal(again.vertices, draped.vertices)
+
+
+def test_bad_inputs_are_rejected_before_simulating():
+    from agentdress_ros.sim import drape
+
+    vertices = np.zeros((3, 3))
+    with pytest.raises(ValueError):
+        drape(vertices, np.array([[0, 1, 5]]), vertices, np.array([[0, 1, 2]]))
+    with pytest.raises(ValueError):
+        drape(np.full((3, 3), np.nan), np.array([[0, 1, 2]]), vertices, np.array([[0, 1, 2]]))
