@@ -42,6 +42,21 @@ def _arm_and_leg_weights(body: AnnyBody):
     return left_arm, right_arm, legs, regions
 
 
+# Crew neck: an opening of these half-widths (x, y) around the neck, reaching this far below the neck joint
+# at the back and further in front. Narrower than the shoulders, so the shirt hangs from them instead of sliding
+# down their slope (friction 0.3 cannot hold cloth on a ~30 degree trapezius).
+NECK_HALF_WIDTHS = np.array([0.085, 0.075])
+NECK_DROP_BACK, NECK_DROP_FRONT = 0.02, 0.07
+
+
+def _crew_neck(v: np.ndarray, neck: np.ndarray) -> np.ndarray:
+    """Field (N,) > 0 inside the neck opening: within the ellipse around the neck axis and above the collar line."""
+    radial = np.linalg.norm((v[:, :2] - neck[:2]) / NECK_HALF_WIDTHS, axis=1)  # 1 on the collar ellipse
+    front = np.clip(-(v[:, 1] - neck[1]) / NECK_HALF_WIDTHS[1], 0.0, 1.0)  # 0 at the back, 1 at the front
+    collar = neck[2] - NECK_DROP_BACK - (NECK_DROP_FRONT - NECK_DROP_BACK) * front
+    return np.minimum(1.0 - radial, v[:, 2] - collar)
+
+
 def garment_field(name: str, body: AnnyBody, shape) -> np.ndarray:
     """The cutting field (N,) of template `name` on the hm08 vertices of `shape` at rest; keep where <= 0."""
     v = shape.vertices
@@ -58,8 +73,7 @@ def garment_field(name: str, body: AnnyBody, shape) -> np.ndarray:
     if name not in ("tshirt", "longsleeve"):
         raise ValueError(f"unknown garment template {name!r}; choose one of {TEMPLATES}")
     hem = (joint["Hips"][2] - 0.05) - z
-    neck_centre = joint["Neck"] + np.array([0.0, 0.0, -0.035])
-    neck = (v - neck_centre) @ _unit(np.array([0.0, -0.45, 1.0]))  # lower in front: a crew neck
+    neck = _crew_neck(v, joint["Neck"])
     field = np.maximum(hem, neck)
     for side, mask in (("Left", on_left_arm), ("Right", on_right_arm)):
         shoulder, elbow, wrist = joint[f"{side}Arm"], joint[f"{side}ForeArm"], joint[f"{side}Hand"]
