@@ -41,7 +41,7 @@ setup(
     ],
     extras_require={
         # Offline database builds (ground-truth cloth drapes); never part of the runtime install.
-        "build": ["newton", "warp-lang", "dask[distributed]"],
+        "build": ["newton==1.8.0", "warp-lang==1.19.0", "dask[distributed]==2026.8.0"],
         "test": ["pytest", "hypothesis", "colcon-core", "colcon-ros"],
     },
     maintainer="agentdress_ros maintainers",

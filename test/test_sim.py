@@ -17,7 +17,7 @@ needs_newton = pytest.mark.skipif(
 
 
 def test_lame_parameters_match_plane_stress_hooke_law():
-    """(mu, lambda) from (Y, nu) reproduce the plane-stress stiffness Y/(1-nu^2) [[1, nu, 0], [nu, 1, 0], [0, 0, (1-nu)/2]]."""
+    """(mu, lambda) from (Y, nu) give plane-stress Hooke: Y/(1-nu^2) [[1, nu, 0], [nu, 1, 0], [0, 0, (1-nu)/2]]."""
     settings = DrapeSettings()
     Y, nu = settings.stretch_stiffness, settings.poisson_ratio
     assert (Y, nu) == (30.0, 0.3)

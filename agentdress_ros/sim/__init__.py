@@ -10,6 +10,7 @@ from .drape import (
     DrapeSettings,
     drape,
     membrane_lame,
+    push_out_of_body,
     require_newton,
     triangle_stretch,
 )
@@ -20,6 +21,7 @@ __all__ = [
     "DrapeSettings",
     "drape",
     "membrane_lame",
+    "push_out_of_body",
     "require_newton",
     "triangle_stretch",
 ]
