@@ -1,4 +1,8 @@
-"""The `agentdress` command: benchmarks, demos and (later) builds, each a subcommand printing what it did."""
+"""The `agentdress` command: demos, the viewer, database builds and benchmarks (JSON), one subcommand each.
+
+`agentdress bench node ...` (latency, rate and CPU of the node over real DDS) takes the options of
+agentdress_ros.evaluate.bench_node; `agentdress bench body|synth` those listed by `agentdress bench -h`.
+"""
 from __future__ import annotations
 
 import argparse
@@ -10,7 +14,23 @@ def _bench(args) -> int:
 
     if args.target == "body":
         print_json(bench_body(tuple(args.garments), args.vertices, args.repeats))
+    elif args.target == "synth":
+        from .evaluate.bench_synth import bench_synth
+
+        print_json(bench_synth(vertices=args.vertices or 12000, anchors=args.anchors, neighbors=args.neighbors,
+                               cold_start=args.cold_start))
     return 0
+
+
+def _passthrough(module: str, function: str):
+    """A subcommand whose options are parsed by the module it runs (demo, view, bench-node)."""
+
+    def run(args) -> int:
+        import importlib
+
+        return getattr(importlib.import_module(module, __package__), function)(args.rest)
+
+    return run
 
 
 def _demo_png(args) -> int:
@@ -52,11 +72,23 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     bench = commands.add_parser("bench", help="benchmarks (JSON on stdout)")
-    bench.add_argument("target", choices=["body"])
+    bench.add_argument("target", choices=["body", "synth"])
     bench.add_argument("--garments", nargs="+", default=["tshirt"], help="garment templates to pose with the body")
     bench.add_argument("--vertices", type=int, default=None, help="garment vertex count (default per template)")
     bench.add_argument("--repeats", type=int, default=500)
+    bench.add_argument("--anchors", type=int, default=150, help="synth: anchors of the synthetic database")
+    bench.add_argument("--neighbors", type=int, default=5, help="synth: anchors blended per region (K)")
+    bench.add_argument("--cold-start", action="store_true", help="synth: also time import + JIT + load")
     bench.set_defaults(run=_bench)
+
+    for name, module, function, text in (
+        ("demo", ".ros.demo", "demo_main", "publish JointState from a motion (and a shape sweep) in real time"),
+        ("view", ".ros.viewer", "view_main", "web viewer of the node's garments"),
+        ("run", ".ros.run_all", "run_main", "node + demo + viewer together (what `make run` starts)"),
+    ):
+        sub = commands.add_parser(name, help=text, add_help=False)
+        sub.add_argument("rest", nargs=argparse.REMAINDER)
+        sub.set_defaults(run=_passthrough(module, function))
 
     build = commands.add_parser("build", help="build a garment database from newton drapes (resumable)")
     build.add_argument("--garment", default="tshirt", help="garment template (tshirt, longsleeve, trousers)")
@@ -87,6 +119,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:2] == ["bench", "node"]:  # its own option set: publisher and node processes, rates, soak
+        from .evaluate.bench_node import main as bench_node_main
+
+        return bench_node_main(argv[2:])
     args = build_parser().parse_args(argv)
     return args.run(args)
 

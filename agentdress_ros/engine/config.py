@@ -1,0 +1,61 @@
+"""EngineConfig: every knob of the runtime engine that trades speed for accuracy, in one place."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+TAYLOR_MODES = ("augmented", "plain", "zeroth")
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """Runtime knobs. Defaults are the paper's method (Eq. 4, 7-10) at full accuracy in float32.
+
+    pose_model: registered pose model name ("lbs", "examples", "sequence"; see engine.pose_models).
+    neighbors: K anchors kept per region (paper: 5). Fewer is faster per vertex, blends less.
+    components: PCA components of the shape models used (None = all in the database; paper: 5). Only costs at
+        a shape change.
+    anchors: subset of anchors: None = all, an int n = n evenly spaced anchors, or a sequence of anchor indices.
+        Fewer anchors: smaller memory and faster shape changes, coarser pose coverage.
+    vertices: garment level of detail, optional: None = all, or a sequence of vertex indices; the engine then
+        outputs only those vertices (in that order) and `Engine.faces` keeps the triangles whose corners all survive.
+    penetration: Eq. 10 re-projection along the bound body vertex normal (eps_p = penetration_margin).
+    decay: Eq. 9 damping of the region distances over frames, ratio `damping` (eta). The paper picks eta per garment
+        from a residual curve it does not print; 0.5 is our default (a ~1.4-frame time constant at the frame rate).
+    dtype: "float32" (default) or "float64" for the per-frame buffers; pose and weight arithmetic is always float64.
+    taylor: "augmented" = Eq. 4 (shape deltas re-posed by LBS); "plain" = Eq. 2 blended (deltas added unrotated);
+        "zeroth" = the ablation of Sec. 4.6: sum_s w^s LBS^beta_{theta_s -> theta}(f(beta0, theta_s)), no pose model,
+        no first-order term.
+    power: k of W = 1 / (D + eps)^k (paper: 3). eps_relative: eps of each region as a fraction of sum_m Q_{g,m}
+        (the distance of a 1 rad difference in every dof), so it is scale free.
+    clamp_to_training_range: clamp beta to the database's training range (the shape models extrapolate badly);
+        False clamps to Anny's [0, 1] only. Either way ShapeReport.clamped says whether anything was clamped.
+    max_root_translation: |root translation| components are clamped to this (metres) so float32 output stays finite.
+    """
+
+    pose_model: str = "lbs"
+    neighbors: int = 5
+    components: int | None = None
+    anchors: object = None
+    vertices: object = None
+    penetration: bool = True
+    penetration_margin: float = 0.005
+    decay: bool = True
+    damping: float = 0.5
+    dtype: str = "float32"
+    taylor: str = "augmented"
+    power: float = 3.0
+    eps_relative: float = 1e-6
+    clamp_to_training_range: bool = True
+    max_root_translation: float = 1.0e4
+
+    def __post_init__(self):
+        if self.taylor not in TAYLOR_MODES:
+            raise ValueError(f"taylor must be one of {TAYLOR_MODES}, got {self.taylor!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        if int(self.neighbors) < 1:
+            raise ValueError(f"neighbors must be >= 1, got {self.neighbors}")
+        if not 0.0 <= float(self.damping) < 1.0:
+            raise ValueError(f"damping (eta) must lie in [0, 1), got {self.damping}")
+        if self.components is not None and int(self.components) < 1:
+            raise ValueError(f"components must be >= 1 or None, got {self.components}")

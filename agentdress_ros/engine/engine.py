@@ -1,0 +1,369 @@
+"""The runtime engine: AgentDress synthesis (Eq. 4, 7-10) for one garment database on one Anny body.
+
+    engine = load_engine("tshirt.h5", EngineConfig())        # or Engine(db, body, config)
+    report = engine.set_shape(beta)                          # rare: re-evaluates every anchor's shape model
+    vertices = engine.synthesize(rotvecs, root_translation)  # every frame: (V, 3) view of an internal buffer
+
+Per frame: validate and canonicalise the pose -> forward kinematics for beta0 and beta (shared rotations) ->
+sensitivity distance to every anchor per region, decay, top-K, weights -> pose model -> one fused kernel that
+skins the pose model, adds the blended re-posed shape deltas and pushes vertices out of the body. No allocation on
+the frame path beyond a few small Python objects; a set_shape builds new arrays and swaps one reference, so it may
+run in another thread while frames are produced.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..body import AnnyBody
+from ..body.kinematics import forward_kinematics
+from ..garment.binding import vertex_normals
+from .config import TAYLOR_MODES, EngineConfig
+from .database import Database, read_database, shape_features
+from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, region_neighbours,
+                      shape_anchors, synthesize_vertices)
+from .pose_models import PoseModelContext, canonical_poses, make_pose_model
+
+N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-zero regions
+
+
+@dataclass(frozen=True)
+class ShapeReport:
+    """What set_shape did. clamped: some phenotype lay outside the allowed range (training range by default)."""
+
+    clamped: bool
+    clamped_names: tuple
+    requested: np.ndarray  # (P,)
+    effective: np.ndarray  # (P,) the beta the shape models and body were evaluated at
+    seconds: float
+
+
+@dataclass(frozen=True)
+class _ShapeState:
+    """Everything that depends on beta, swapped in as one reference."""
+
+    beta: np.ndarray  # (P,)
+    heads: np.ndarray  # (B, 3) rest joints of beta
+    deltas: np.ndarray  # (N, 3, V) per-anchor rows for block_accumulate
+    clearances: np.ndarray  # (N, V) d0^s (or (1, 1) when penetration is off)
+    body_points: np.ndarray  # (V, 3) bound body vertex at rest
+    body_normals: np.ndarray  # (V, 3)
+
+
+def select_database(db: Database, config: EngineConfig) -> Database:
+    """The database restricted to the config's anchors subset, PCA components and vertex subset (level of detail)."""
+    changes = {}
+    if config.anchors is not None:
+        if np.isscalar(config.anchors):
+            count = int(np.clip(int(config.anchors), 1, db.n_anchors))
+            keep = np.unique(np.linspace(0, db.n_anchors - 1, count).round().astype(int))
+        else:
+            keep = np.asarray(config.anchors, dtype=int).reshape(-1)
+            if keep.size == 0 or keep.min() < -db.n_anchors or keep.max() >= db.n_anchors:
+                raise ValueError(f"anchors subset must index 0..{db.n_anchors - 1}")
+        changes.update(anchor_poses=db.anchor_poses[keep], pca_mean=db.pca_mean[keep],
+                       pca_components=db.pca_components[keep], ridge=db.ridge[keep],
+                       explained_variance_ratio=db.explained_variance_ratio[keep])
+    if config.components is not None and config.components < db.n_components:
+        c = int(config.components)
+        changes.update(pca_components=changes.get("pca_components", db.pca_components)[:, :c],
+                       ridge=changes.get("ridge", db.ridge)[:, :, :c],
+                       explained_variance_ratio=changes.get("explained_variance_ratio",
+                                                            db.explained_variance_ratio)[:, :c])
+    if config.vertices is not None:
+        ids = np.asarray(config.vertices, dtype=int).reshape(-1)
+        if ids.size == 0 or ids.min() < 0 or ids.max() >= db.n_vertices:
+            raise ValueError(f"vertex subset must index 0..{db.n_vertices - 1}")
+        remap = np.full(db.n_vertices, -1)
+        remap[ids] = np.arange(len(ids))
+        faces = remap[db.faces]
+        changes.update(
+            faces=faces[(faces >= 0).all(axis=1)].astype(np.int32),
+            rest=db.rest[ids], skin_indices=db.skin_indices[ids], skin_weights=db.skin_weights[ids],
+            regions=db.regions[ids],
+            pca_mean=changes.get("pca_mean", db.pca_mean)[:, ids],
+            pca_components=changes.get("pca_components", db.pca_components)[:, :, ids],
+            example_drapes=db.example_drapes[:, ids],
+            sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, ids],
+        )
+    return replace(db, **changes) if changes else db
+
+
+def region_blocks(regions: np.ndarray, slots: int = N_REGION_SLOTS):
+    """Sort vertices by their set of non-zero regions (at most `slots`, renormalised) for the block kernels.
+
+    regions (V, R) -> order (V,) internal -> caller vertex index, block_start (nb + 1,), block_regions (nb, slots)
+    int32 (-1 padded), region_w (slots, V) float64 in internal order. A vertex with no region weight follows the
+    torso (region 0) rather than dropping its shape term.
+    """
+    regions = np.clip(np.nan_to_num(np.asarray(regions, dtype=np.float64)), 0.0, None)
+    top = np.argsort(-regions, axis=1, kind="stable")[:, :slots]
+    top_w = np.take_along_axis(regions, top, axis=1)
+    keep = top_w > 0
+    signatures, weights = [], []
+    for ids, w, k in zip(top, top_w, keep):
+        if not k.any():
+            ids, w, k = np.array([0]), np.array([1.0]), np.array([True])
+        pairs = sorted(zip(ids[k].tolist(), (w[k] / w[k].sum()).tolist()))
+        signatures.append(tuple(g for g, _ in pairs))
+        weights.append([x for _, x in pairs])
+    order = np.array(sorted(range(len(regions)), key=lambda v: (signatures[v], v)), dtype=np.int64)
+    starts, block_regions = [], []
+    region_w = np.zeros((slots, len(regions)))
+    for i, v in enumerate(order):
+        if i == 0 or signatures[v] != signatures[order[i - 1]]:
+            starts.append(i)
+            block_regions.append(list(signatures[v]) + [-1] * (slots - len(signatures[v])))
+        region_w[: len(weights[v]), i] = weights[v]
+    starts.append(len(order))
+    return order, np.array(starts, dtype=np.int64), np.array(block_regions, dtype=np.int32), region_w
+
+
+def permute_vertices(db: Database, order: np.ndarray) -> Database:
+    """The database with every per-vertex array in `order` (faces are left in the caller's numbering)."""
+    return replace(
+        db, rest=db.rest[order], skin_indices=db.skin_indices[order], skin_weights=db.skin_weights[order],
+        regions=db.regions[order], pca_mean=db.pca_mean[:, order], pca_components=db.pca_components[:, :, order],
+        example_drapes=db.example_drapes[:, order],
+        sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, order])
+
+
+def distance_metric(region_dof: np.ndarray, n_bones: int, eps_relative: float):
+    """(dofs (Da,), Q (R, Da) float64, eps (R,)) of Eq. 7.
+
+    The root's three rotation dofs are dropped (anchors are upright; the root's rotation reaches the garment through
+    skinning only), as are dofs no region is sensitive to. A region with no sensitivity at all (e.g. the legs of a
+    T-shirt) would see every anchor at distance 0 and blend arbitrary ones: it uses the sum over regions instead.
+    """
+    q = np.asarray(region_dof, dtype=np.float64).copy()
+    q[:, :3] = 0.0
+    q = np.clip(np.nan_to_num(q), 0.0, None)
+    total = q.sum(axis=0)
+    if not (total > 0).any():
+        total = np.ones(3 * n_bones)
+        total[:3] = 0.0
+    scale = total.sum()
+    for g in range(len(q)):
+        if q[g].sum() <= 1e-9 * scale:
+            q[g] = total
+    dofs = np.flatnonzero(total > 0)
+    q = np.ascontiguousarray(q[:, dofs])
+    return dofs.astype(np.int64), q, eps_relative * q.sum(axis=1)
+
+
+class Engine:
+    """AgentDress runtime for database `db` on `body` (the database's rig), with the knobs of `config`.
+
+    Attributes after construction: `db` (the level-of-detail/anchor-subset database actually used), `faces` (F, 3),
+    `n_vertices`, `pose_model`, `shape_report` (the last set_shape), `bad_frames` (frames rejected for non-finite
+    output; the previous good frame was returned instead, which never happened in tests).
+    """
+
+    def __init__(self, db: Database, body: AnnyBody, config: EngineConfig = EngineConfig()):
+        if tuple(db.bone_names) != tuple(body.bone_names):
+            raise ValueError(f"database rig {db.bone_names[:3]}... does not match the body's {body.bone_names[:3]}...")
+        self.config = config
+        self.body = body
+        db = select_database(db, config)
+        self.faces = db.faces  # (F, 3) in the output's vertex numbering
+        # internally, vertices are sorted by region set (block kernels); output is written back in caller order
+        self.order, self.block_start, self.block_regions, region_w = region_blocks(db.regions)
+        db = permute_vertices(db, self.order)
+        self.db = db
+        self.dtype = np.dtype(config.dtype).type
+        self._zero = self.dtype(0.0)
+        self.mode = TAYLOR_MODES.index(config.taylor)
+        self.parents = np.ascontiguousarray(body.parents, dtype=np.int64)
+        self.n_bones = body.n_bones
+        self.n_vertices = db.n_vertices
+        self.skin_indices = np.ascontiguousarray(db.skin_indices, dtype=np.int32)
+        self.skin_weights = np.ascontiguousarray(db.skin_weights, dtype=self.dtype)
+        self._skin_weights64 = np.ascontiguousarray(db.skin_weights, dtype=np.float64)
+        self.region_w = np.ascontiguousarray(region_w, dtype=self.dtype)
+        self.dofs, self.q, self.eps = distance_metric(db.region_dof, self.n_bones, config.eps_relative)
+        self.anchor_poses = canonical_poses(db.anchor_poses)
+        self.features = np.ascontiguousarray(self.anchor_poses.reshape(db.n_anchors, -1)[:, self.dofs])
+        self.neighbors = min(int(config.neighbors), db.n_anchors)
+
+        # beta0: reference skeleton, shape-model coefficients, penetration binding (closest body vertex at rest)
+        self.reference = body.shape(db.beta0)
+        self._heads0 = np.ascontiguousarray(self.reference.heads, dtype=np.float64)
+        self._phi0 = self._coefficients(db.beta0)
+        surface = body.body_vertex_ids
+        _, nearest = cKDTree(self.reference.vertices[surface]).query(np.asarray(db.rest, dtype=np.float64))
+        self.bound_body_vertex = surface[nearest]  # (V,) hm08 ids
+
+        context = PoseModelContext(
+            db=db, reference_heads=self._heads0, parents=self.parents, dtype=self.dtype, neighbours=self.neighbors,
+            dofs=self.dofs, region_dof=self.q, eps=self.eps, power=float(config.power), decay=bool(config.decay),
+            damping=float(config.damping), block_start=self.block_start, block_regions=self.block_regions,
+            region_w=self.region_w)
+        self.pose_model = make_pose_model(config.pose_model, context)
+
+        # frame buffers, allocated once
+        b, r, k = self.n_bones, self.q.shape[0], self.neighbors
+        self._theta = np.zeros((b, 3))
+        self._theta_flat = self._theta.reshape(-1)
+        self._root = np.zeros(3)
+        self._zero3 = np.zeros(3)
+        self._rotations = np.zeros((b, 3, 3))
+        self._positions0 = np.zeros((b, 3))
+        self._positions = np.zeros((b, 3))
+        self._transforms0 = np.zeros((b, 3, 4))
+        self._reference_translations = self._transforms0[:, :, 3]
+        self.transforms = np.zeros((b, 3, 4), dtype=self.dtype)  # (B, 3, 4) of the last frame, current shape
+        self.selected = np.zeros((r, k), dtype=np.int32)
+        self.weights = np.zeros((r, k), dtype=self.dtype)
+        self._distances = np.zeros((r, db.n_anchors))
+        self._has_distances = False
+        v = self.n_vertices
+        self._blended = np.zeros((3, v), dtype=self.dtype)
+        self._clearance = np.zeros(v, dtype=self.dtype)
+        self._normals = np.zeros((3, v), dtype=self.dtype)
+        self._push = np.zeros(v, dtype=self.dtype)
+        self._no_pose = np.zeros((3, v), dtype=self.dtype)
+        rest = np.empty((v, 3), dtype=self.dtype)
+        rest[self.order] = db.rest
+        self._buffers = (rest, rest.copy())  # double buffer: the last good frame survives a bad one
+        self._current = 0
+        self.bad_frames = 0
+        self.shape_report = self.set_shape(db.beta0)
+
+    # ---------------------------------------------------------------- shape (rare, off the frame path)
+    def _coefficients(self, beta) -> np.ndarray:
+        """phi(beta) (N, C) of Eq. 6 for every anchor."""
+        features = shape_features(beta, self.db.beta0, self.db.beta_scale)[0]
+        return np.einsum("q,nqc->nc", features, self.db.ridge)
+
+    def set_shape(self, beta) -> ShapeReport:
+        """Re-evaluate every anchor's shape model and binding for `beta` (P,), then swap them in atomically.
+
+        Raises ValueError naming the phenotype for non-finite values or a wrong length; out-of-range values are
+        clamped (to the training range unless config.clamp_to_training_range is False) and reported.
+        """
+        start = time.perf_counter()
+        db, config = self.db, self.config
+        requested = np.asarray(beta, dtype=np.float64).reshape(-1)
+        names = tuple(db.beta_names)
+        if requested.shape != (len(names),):
+            raise ValueError(f"body shape needs {len(names)} values {names}, got {requested.size}")
+        bad = [names[i] for i in np.flatnonzero(~np.isfinite(requested))]
+        if bad:
+            raise ValueError(f"body shape has non-finite values for {', '.join(bad)}")
+        low, high = np.zeros(len(names)), np.ones(len(names))
+        if config.clamp_to_training_range:
+            low, high = np.maximum(low, db.beta_range[:, 0]), np.minimum(high, db.beta_range[:, 1])
+        effective = np.clip(requested, low, high)
+        clamped_names = tuple(names[i] for i in np.flatnonzero(effective != requested))
+
+        shape = self.body.shape(effective)
+        heads = np.ascontiguousarray(shape.heads, dtype=np.float64)
+        # new arrays only, never the live ones: a frame may be reading them while this runs in another thread
+        transforms = np.empty((db.n_anchors, self.n_bones, 3, 4))
+        for s, pose in enumerate(self.anchor_poses):
+            forward_kinematics(pose, self._zero3, heads, self.parents, transforms[s])
+        phi = self._coefficients(effective)
+        normals = vertex_normals(shape.vertices, self.body.body_faces)
+        body_points = np.ascontiguousarray(shape.vertices[self.bound_body_vertex], dtype=self.dtype)
+        body_normals = np.ascontiguousarray(normals[self.bound_body_vertex], dtype=self.dtype)
+        deltas = np.empty((db.n_anchors, 3, self.n_vertices), dtype=self.dtype)
+        clearances = (np.empty((db.n_anchors, self.n_vertices), dtype=self.dtype) if config.penetration
+                      else np.zeros((1, 1), dtype=self.dtype))
+        shape_anchors(phi - self._phi0, phi, db.pca_mean, db.pca_components, transforms, self.skin_indices,
+                      self._skin_weights64, self.mode, config.penetration, body_points.astype(np.float64),
+                      body_normals.astype(np.float64), config.penetration_margin, deltas, clearances)
+        self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals)
+        report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start)
+        self.shape_report = report
+        return report
+
+    # ---------------------------------------------------------------- frame path
+    def reset(self):
+        """Forget the decay history (Eq. 9), e.g. after a cut in the motion."""
+        self._has_distances = False
+        if hasattr(self.pose_model, "reset"):
+            self.pose_model.reset()
+
+    def synthesize(self, rotvecs, root_translation=None, frame: int | None = None) -> np.ndarray:
+        """Garment (V, 3) for pose rotvecs (B, 3) and root translation (3,) at the current shape.
+
+        Returns a view of an internal buffer (config dtype), valid until the next-but-one call. `frame` is only
+        used by the "sequence" pose model. Raises ValueError naming the joint for a non-finite input.
+        """
+        state = self._state  # one read: a concurrent set_shape swaps the whole state
+        rotvecs = np.asarray(rotvecs)
+        if rotvecs.shape != (self.n_bones, 3):
+            raise ValueError(f"rotvecs must have shape ({self.n_bones}, 3), got {rotvecs.shape}")
+        root = self._zero3 if root_translation is None else np.asarray(root_translation).reshape(3)
+        code = prepare_pose(rotvecs, root, self.config.max_root_translation, self._theta, self._root)
+        if code >= 0:
+            what = "root translation" if code == self.n_bones else f"joint {self.db.bone_names[code]}"
+            raise ValueError(f"non-finite pose input for {what}")
+        pose_transforms(self._theta, self._root, self._heads0, state.heads, self.parents, self._rotations,
+                        self._positions0, self._positions, self._transforms0, self.transforms)
+        config = self.config
+        region_neighbours(self._theta_flat, self.features, self.dofs, self.q, self.eps, config.power,
+                          config.damping, self._distances, config.decay and self._has_distances, self.selected,
+                          self.weights)
+        self._has_distances = True
+        if self.mode == 2:
+            pose, skinned = self._no_pose, False  # the ablation has no pose model
+        else:
+            pose = self.pose_model.evaluate(self._theta, self._root, frame)
+            skinned = self.pose_model.skinned
+        blocks = (self.block_start, self.block_regions, self.region_w, self.selected, self.weights)
+        block_accumulate(*blocks, state.deltas, self._blended)
+        out = self._buffers[1 - self._current]
+        bad = synthesize_vertices(self._zero, self.skin_indices, self.skin_weights, self.transforms,
+                                  self._reference_translations, pose, skinned, self._blended, self.mode,
+                                  config.penetration, state.body_points, state.body_normals, self._clearance,
+                                  self._normals, self.order, out)
+        if config.penetration:
+            block_push(self._zero, *blocks, state.clearances, self._clearance, self._push)
+            bad = apply_push(self._push, self._normals, self.order, out)
+        if bad:
+            self.bad_frames += 1
+            return self._buffers[self._current]
+        self._current = 1 - self._current
+        return out
+
+    def pose_model_output(self, rotvecs, root_translation=None, frame: int | None = None) -> np.ndarray:
+        """f(beta0, theta) (V, 3) float64 of the configured pose model alone, in output order (evaluation; allocates).
+
+        Touches the pose model's decay state (if any) like a frame would.
+        """
+        theta, root = np.zeros((self.n_bones, 3)), np.zeros(3)
+        zero = np.zeros(3) if root_translation is None else np.asarray(root_translation, dtype=np.float64)
+        if prepare_pose(np.asarray(rotvecs, dtype=np.float64), zero, self.config.max_root_translation, theta,
+                        root) >= 0:
+            raise ValueError("non-finite pose input")
+        values = np.asarray(self.pose_model.evaluate(theta, root, frame), dtype=np.float64).T
+        if self.pose_model.skinned:
+            transforms = np.empty((self.n_bones, 3, 4))
+            forward_kinematics(theta, root, self._heads0, self.parents, transforms)
+            blend = np.einsum("vi,virc->vrc", self._skin_weights64, transforms[self.skin_indices])
+            values = np.einsum("vrc,vc->vr", blend[:, :, :3], values) + blend[:, :, 3]
+        out = np.empty_like(values)
+        out[self.order] = values
+        return out
+
+    def anchor_weights(self) -> np.ndarray:
+        """(N,) each anchor's blend weight averaged over vertices for the last frame (diagnostics, allocates)."""
+        per_region = np.zeros((self.q.shape[0], self.db.n_anchors))
+        np.put_along_axis(per_region, self.selected.astype(np.int64), self.weights.astype(np.float64), axis=1)
+        mass = np.zeros(self.q.shape[0])
+        for b in range(len(self.block_regions)):
+            lo, hi = self.block_start[b], self.block_start[b + 1]
+            for j, g in enumerate(self.block_regions[b]):
+                if g >= 0:
+                    mass[g] += self.region_w[j, lo:hi].sum()
+        return (mass / mass.sum()) @ per_region
+
+
+def load_engine(path, config: EngineConfig = EngineConfig(), body: AnnyBody | None = None) -> Engine:
+    """Read a database file (raises DatabaseError naming the field) and build an Engine on `body` (default Anny)."""
+    db = read_database(path)
+    return Engine(db, body if body is not None else AnnyBody(), config)

@@ -1,0 +1,178 @@
+"""Clothing pose models f(beta0, theta) behind one small interface, and their registry by name (AgentDress Sec. 3.3).
+
+A pose model answers `evaluate(theta, root, frame) -> (3, V)` for a canonical pose theta (B, 3) float64 (rotation
+vectors with angles in [-pi, pi], see kernels.prepare_pose). Models with `skinned = True` return rest-frame
+(canonical) positions that the engine skins with beta0's transforms in its fused frame kernel (cheaper than skinning
+twice); the others return posed world positions. The layout is (3, V) (x, y and z rows: the frame kernels stream
+them) in the engine's internal vertex order (the context's database is already permuted so); Engine.pose_model_output
+gives (V, 3) in output order. The returned array may be an internal buffer or a constant array: the caller only
+reads it before the next call. Later models (learned, volumetric) register the same way:
+
+    @register_pose_model("mine")
+    def _make(context: PoseModelContext) -> PoseModel: ...
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Protocol, runtime_checkable
+
+import numpy as np
+
+from ..body.kinematics import forward_kinematics
+from .database import Database
+from .kernels import block_accumulate, prepare_pose, region_neighbours, unpose
+
+
+@runtime_checkable
+class PoseModel(Protocol):
+    name: str
+    skinned: bool  # evaluate returns rest-frame positions to be skinned with beta0's transforms
+
+    def evaluate(self, theta: np.ndarray, root: np.ndarray, frame: int | None) -> np.ndarray:
+        """(3, V) garment at beta0 for pose theta (B, 3), root translation (3,), optional sequence frame index."""
+
+
+@dataclass(frozen=True)
+class PoseModelContext:
+    """What a pose model may use: the (level-of-detail sliced) database, beta0's rest skeleton, run dtype, and the
+    engine's neighbour machinery (the same sensitivity distance as the anchors)."""
+
+    db: Database
+    reference_heads: np.ndarray  # (B, 3) beta0 rest joint positions
+    parents: np.ndarray  # (B,) int64
+    dtype: type
+    neighbours: int
+    dofs: np.ndarray  # (Da,) active pose dofs of the sensitivity distance
+    region_dof: np.ndarray  # (R, Da) float64 Q_{g,m}, degenerate regions already replaced
+    eps: np.ndarray  # (R,)
+    power: float
+    decay: bool
+    damping: float
+    block_start: np.ndarray  # (nb + 1,) vertex blocks of equal region sets (kernels.block_accumulate)
+    block_regions: np.ndarray  # (nb, 4) int32
+    region_w: np.ndarray  # (4, V)
+
+
+POSE_MODELS: dict[str, Callable[[PoseModelContext], PoseModel]] = {}
+
+
+def register_pose_model(name: str):
+    """Decorator registering a factory `context -> PoseModel` under `name`."""
+
+    def wrap(factory):
+        POSE_MODELS[name] = factory
+        return factory
+
+    return wrap
+
+
+def make_pose_model(name: str, context: PoseModelContext) -> PoseModel:
+    if name not in POSE_MODELS:
+        raise ValueError(f"unknown pose model {name!r}; choose one of {sorted(POSE_MODELS)}")
+    return POSE_MODELS[name](context)
+
+
+def canonical_poses(poses: np.ndarray) -> np.ndarray:
+    """(M, B, 3) poses with every rotation vector's angle mapped into [-pi, pi] (same rotations)."""
+    out = np.empty(poses.shape, dtype=np.float64)
+    root = np.empty(3)
+    for i, pose in enumerate(np.asarray(poses, dtype=np.float64)):
+        prepare_pose(pose, np.zeros(3), 1.0, out[i], root)
+    return out
+
+
+class LbsPoseModel:
+    """f(beta0, theta) = the garment rest mesh skinned (the engine does the skinning): a pose model without wrinkles."""
+
+    name = "lbs"
+    skinned = True
+
+    def __init__(self, context: PoseModelContext):
+        self.rest = np.ascontiguousarray(context.db.rest.T, dtype=context.dtype)
+
+    def evaluate(self, theta, root, frame):
+        return self.rest
+
+
+class ExamplePoseModel:
+    """Sensitivity-weighted blend of beta0 example drapes, in the spirit of SOR without its rigging optimisation.
+
+    At load every example drape is unposed at its own pose (beta0's bones) to the rest frame; per frame the nearest
+    examples per region (the anchors' sensitivity distance, K neighbours, power k, optional decay) are blended per
+    vertex (Eq. 8 weights) in the rest frame; the engine skins the blend.
+    """
+
+    name = "examples"
+    skinned = True
+
+    def __init__(self, context: PoseModelContext):
+        db = context.db
+        poses = canonical_poses(db.example_poses)
+        skin_w = np.ascontiguousarray(db.skin_weights, dtype=np.float64)
+        n_examples, n_vertices = db.example_drapes.shape[:2]
+        canonical = np.empty((n_examples, 3, n_vertices), dtype=context.dtype)
+        transforms = np.empty((len(context.parents), 3, 4))
+        unposed = np.empty((n_vertices, 3))
+        for m, pose in enumerate(poses):
+            forward_kinematics(pose, np.zeros(3), context.reference_heads, context.parents, transforms)
+            unpose(db.example_drapes[m].astype(np.float64), db.skin_indices, skin_w, transforms, unposed)
+            canonical[m] = unposed.T
+        self.canonical = canonical
+        self.features = np.ascontiguousarray(poses.reshape(len(poses), -1)[:, context.dofs])
+        self.context = context
+        k = min(context.neighbours, len(poses))
+        n_regions = context.region_dof.shape[0]
+        self.state = np.zeros((n_regions, len(poses)))
+        self.has_state = False
+        self.selected = np.zeros((n_regions, k), dtype=np.int32)
+        self.weights = np.zeros((n_regions, k), dtype=context.dtype)
+        self.out = np.empty(canonical.shape[1:], dtype=context.dtype)
+
+    def reset(self):
+        self.has_state = False
+
+    def evaluate(self, theta, root, frame):
+        c = self.context
+        region_neighbours(theta.reshape(-1), self.features, c.dofs, c.region_dof, c.eps, c.power, c.damping,
+                          self.state, c.decay and self.has_state, self.selected, self.weights)
+        self.has_state = True
+        block_accumulate(c.block_start, c.block_regions, c.region_w, self.selected, self.weights, self.canonical,
+                         self.out)
+        return self.out
+
+
+class SequencePoseModel:
+    """The simulated beta0 sequence as a pose model (evaluation only): drape of frame `frame`, or of the sequence
+    frame whose pose is nearest (sensitivity-weighted, wrapped) when no frame is given; shifted by the difference of
+    root translations."""
+
+    name = "sequence"
+    skinned = False
+
+    def __init__(self, context: PoseModelContext):
+        db = context.db
+        if db.sequence_drapes is None:
+            raise ValueError("pose model 'sequence' needs a database with pose_model/sequence")
+        self.drapes = np.ascontiguousarray(np.transpose(db.sequence_drapes, (0, 2, 1)), dtype=context.dtype)
+        poses = canonical_poses(db.sequence_poses)
+        self.features = poses.reshape(len(poses), -1)[:, context.dofs]
+        self.dof_weight = context.region_dof.sum(axis=0)
+        roots = db.sequence_root_translation
+        self.roots = np.zeros((len(poses), 3)) if roots is None else np.asarray(roots, dtype=np.float64)
+        self.out = np.empty(self.drapes.shape[1:], dtype=context.dtype)
+        self.dofs = context.dofs
+
+    def nearest_frame(self, theta) -> int:
+        diff = theta.reshape(-1)[self.dofs] - self.features
+        diff -= 2 * np.pi * np.floor(diff / (2 * np.pi) + 0.5)
+        return int(np.argmin((diff**2) @ self.dof_weight))
+
+    def evaluate(self, theta, root, frame):
+        t = self.nearest_frame(theta) if frame is None else int(np.clip(frame, 0, len(self.drapes) - 1))
+        np.add(self.drapes[t], (root - self.roots[t]).astype(self.out.dtype)[:, None], out=self.out)
+        return self.out
+
+
+register_pose_model("lbs")(LbsPoseModel)
+register_pose_model("examples")(ExamplePoseModel)
+register_pose_model("sequence")(SequencePoseModel)

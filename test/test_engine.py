@@ -1,0 +1,214 @@
+"""Runtime engine: analytic truths of the synthesis (Eq. 4, 7-10) on a small synthetic database."""
+import numpy as np
+import pytest
+
+from agentdress_ros.body.kinematics import linear_blend_skinning
+from agentdress_ros.engine.config import EngineConfig
+from agentdress_ros.engine.database import DatabaseError, shape_features, write_database
+from agentdress_ros.engine.engine import Engine, load_engine, region_blocks
+from agentdress_ros.engine.kernels import block_push, region_neighbours
+from agentdress_ros.engine.pose_models import POSE_MODELS, PoseModel
+from agentdress_ros.engine.synthetic import make_synthetic_database
+
+EXACT = EngineConfig(penetration=False, decay=False)
+
+
+@pytest.fixture(scope="module")
+def db(body):
+    return make_synthetic_database(1200, 12, n_examples=6, n_sequence=5, seed=3, body=body)
+
+
+@pytest.fixture(scope="module")
+def exact_engine(db, body):
+    return Engine(db, body, EXACT)
+
+
+def skinned(body, shape, rest, db, pose, root=None):
+    """Plain LBS (float64) of `rest` (V, 3) with shape's transforms at pose."""
+    transforms, _ = body.pose(shape, np.asarray(pose, dtype=np.float64), root)
+    out = np.empty((len(rest), 3))
+    return linear_blend_skinning(np.asarray(rest, dtype=np.float64), db.skin_indices,
+                                 db.skin_weights.astype(np.float64), transforms, out)
+
+
+def shape_model(db, s, beta):
+    """f(beta, theta_s) (V, 3) of anchor s, straight from the database arrays (Eq. 5-6)."""
+    phi = shape_features(beta, db.beta0, db.beta_scale)[0] @ db.ridge[s]
+    return db.pca_mean[s] + np.tensordot(phi, db.pca_components[s], axes=1)
+
+
+@pytest.mark.parametrize("s, k", [(0, 0), (4, 2), (7, 8), (11, 16)])
+def test_taylor_blend_at_an_anchor_reproduces_its_drape(db, body, exact_engine, s, k):
+    # at theta = theta_s and a training shape: pose_model(theta_s) + f(beta, theta_s) - f(beta0, theta_s), exactly
+    beta = db.training_betas[k]
+    exact_engine.set_shape(beta)
+    out = exact_engine.synthesize(db.anchor_poses[s]).astype(np.float64)
+    expected = skinned(body, exact_engine.reference, db.rest, db, db.anchor_poses[s])
+    expected += shape_model(db, s, beta) - shape_model(db, s, db.beta0)
+    assert np.abs(out - expected).max() < 2e-5
+    assert exact_engine.weights[:, 0].min() > 1 - 1e-6  # the anchor itself carries all weight
+
+
+def test_reference_shape_is_plain_lbs_at_any_pose(db, body, exact_engine):
+    exact_engine.set_shape(db.beta0)
+    pose = np.random.default_rng(0).normal(scale=0.4, size=(body.n_bones, 3))
+    out = exact_engine.synthesize(pose, np.array([0.3, -0.2, 0.1]))
+    expected = skinned(body, exact_engine.reference, db.rest, db, pose, np.array([0.3, -0.2, 0.1]))
+    assert np.abs(out - expected).max() < 2e-5
+
+
+def test_identity_pose_at_reference_shape_returns_the_rest_garment(db, exact_engine):
+    exact_engine.set_shape(db.beta0)
+    out = exact_engine.synthesize(np.zeros((len(db.bone_names), 3)))
+    assert np.abs(out - db.rest).max() < 1e-5
+
+
+def test_ablation_at_an_anchor_at_beta0_returns_the_anchor_drape(db, body):
+    # Sec. 4.6: sum_s w^s LBS_{theta_s -> theta}(f(beta0, theta_s)); at theta_s that is f(beta0, theta_s)
+    engine = Engine(db, body, EngineConfig(penetration=False, decay=False, taylor="zeroth"))
+    out = engine.synthesize(db.anchor_poses[5])
+    assert np.abs(out - shape_model(db, 5, db.beta0)).max() < 2e-5
+
+
+def test_plain_and_augmented_agree_at_an_anchor(db, body):
+    beta = db.training_betas[3]
+    outs = []
+    for taylor in ("augmented", "plain"):
+        engine = Engine(db, body, EngineConfig(penetration=False, decay=False, taylor=taylor))
+        engine.set_shape(beta)
+        outs.append(engine.synthesize(db.anchor_poses[2]).copy())
+    assert np.abs(outs[0] - outs[1]).max() < 2e-5
+
+
+def test_weights_sum_to_one_nearest_first():
+    rng = np.random.default_rng(1)
+    poses, q = rng.normal(size=(20, 9)), rng.uniform(size=(7, 9))
+    selected, weights = np.zeros((7, 5), dtype=np.int32), np.zeros((7, 5))
+    state = np.zeros((7, 20))
+    region_neighbours(rng.normal(size=12), poses, np.arange(3, 12), q, np.full(7, 1e-9), 3.0, 0.5, state, False,
+                      selected, weights)
+    assert np.allclose(weights.sum(axis=1), 1.0)
+    assert (np.diff(weights, axis=1) <= 1e-12).all()  # nearest first, heaviest first
+    for g in range(7):
+        assert set(selected[g]) == set(np.argsort(state[g], kind="stable")[:5])
+
+
+def test_decay_blends_distances_with_the_previous_frame():
+    poses, q = np.array([[0.0], [1.0]]), np.ones((7, 1))
+    selected, weights, state = np.zeros((7, 1), dtype=np.int32), np.zeros((7, 1)), np.zeros((7, 2))
+    args = (np.arange(1), q, np.full(7, 1e-9), 3.0, 0.25)
+    region_neighbours(np.array([0.0]), poses, *args, state, False, selected, weights)
+    region_neighbours(np.array([1.0]), poses, *args, state, True, selected, weights)
+    assert np.allclose(state[:, 0], 0.75) and np.allclose(state[:, 1], 0.25)  # D = eta D' + (1 - eta) D
+
+
+def test_penetration_push_is_the_blended_eq10_depth():
+    starts, regions = np.array([0, 2]), np.array([[0, -1, -1, -1]], dtype=np.int32)
+    region_w = np.zeros((4, 2))
+    region_w[0] = 1.0
+    selected, weights = np.array([[0, 1]] * 7, dtype=np.int32), np.array([[0.5, 0.5]] * 7)
+    clearances = np.array([[0.005, 0.005], [0.003, 0.0]])  # d0 per anchor and vertex
+    push = np.zeros(2)
+    block_push(0.0, starts, regions, region_w, selected, weights, clearances, np.array([0.001, 0.004]), push)
+    assert np.allclose(push, [0.5 * 0.004 + 0.5 * 0.002, 0.5 * 0.001 + 0.0])
+
+
+def test_penetration_handling_lifts_a_garment_pushed_into_the_body(db, body):
+    from dataclasses import replace
+
+    from agentdress_ros.garment.binding import vertex_normals
+
+    reference = body.shape(db.beta0)
+    normals = vertex_normals(reference.vertices, body.body_faces)
+    engine = Engine(db, body, EXACT)
+    sunk = db.rest - 0.02 * normals[engine.bound_body_vertex[np.argsort(engine.order)]]
+    sunk_db = replace(db, rest=sunk.astype(np.float32))
+    pose = db.anchor_poses[1]
+    off = Engine(sunk_db, body, EXACT).synthesize(pose).copy()
+    engine = Engine(sunk_db, body, EngineConfig(decay=False))
+    on = engine.synthesize(pose).copy()
+    moved = np.linalg.norm(on - off, axis=1)
+    # the shirt sat ~1.5 cm off the skin; sunk 2 cm, it is pushed back to its d0 = min(h0, 5 mm) clearance
+    assert 0.004 < moved.mean() < 0.03
+    after = engine._clearance + engine._push  # h + sum_s w^s max(0, d0^s - h) >= the blended d0 >= min d0
+    assert (after >= engine._state.clearances.min(axis=0) - 1e-6).all()
+
+
+def test_examples_pose_model_reproduces_an_example_at_its_pose(db, body):
+    engine = Engine(db, body, EngineConfig(pose_model="examples", penetration=False, decay=False))
+    out = engine.pose_model_output(db.example_poses[2])
+    assert np.abs(out - db.example_drapes[2]).max() < 2e-5
+    assert np.isfinite(engine.synthesize(db.example_poses[2] * 1.1)).all()
+
+
+def test_sequence_pose_model_looks_up_the_frame(db, body):
+    engine = Engine(db, body, EngineConfig(pose_model="sequence", penetration=False, decay=False))
+    for t in (0, 3):
+        out = engine.synthesize(db.sequence_poses[t], frame=t)
+        assert np.abs(out - db.sequence_drapes[t]).max() < 2e-5
+    assert np.abs(engine.synthesize(db.sequence_poses[4]) - db.sequence_drapes[4]).max() < 2e-5  # nearest frame
+
+
+def test_pose_model_registry_and_protocol(exact_engine):
+    assert {"lbs", "examples", "sequence"} <= set(POSE_MODELS)
+    assert isinstance(exact_engine.pose_model, PoseModel)
+    with pytest.raises(ValueError, match="unknown pose model"):
+        Engine(exact_engine.db, exact_engine.body, EngineConfig(pose_model="nope"))
+
+
+def test_level_of_detail_outputs_the_same_vertices(db, body):
+    ids = np.arange(0, db.n_vertices, 3)
+    pose = np.random.default_rng(2).normal(scale=0.3, size=(len(db.bone_names), 3))
+    outs = []
+    for vertices in (None, ids):
+        engine = Engine(db, body, EngineConfig(decay=False, vertices=vertices))
+        engine.set_shape(db.training_betas[6])
+        outs.append(engine.synthesize(pose).copy())
+    assert outs[1].shape == (len(ids), 3)
+    assert np.abs(outs[0][ids] - outs[1]).max() < 1e-5
+    assert Engine(db, body, EngineConfig(vertices=ids)).faces.max() < len(ids)
+
+
+def test_knobs_anchors_components_neighbors_float64(db, body):
+    pose = np.random.default_rng(4).normal(scale=0.3, size=(len(db.bone_names), 3))
+    engine = Engine(db, body, EngineConfig(anchors=4, components=2, neighbors=2))
+    assert engine.db.n_anchors == 4 and engine.db.n_components == 2 and engine.selected.shape == (7, 2)
+    assert np.isfinite(engine.synthesize(pose)).all()
+    a = Engine(db, body, EngineConfig(dtype="float32"))
+    b = Engine(db, body, EngineConfig(dtype="float64"))
+    for engine in (a, b):
+        engine.set_shape(db.training_betas[10])
+    out32, out64 = a.synthesize(pose), b.synthesize(pose)
+    assert out32.dtype == np.float32 and out64.dtype == np.float64
+    assert np.abs(out32 - out64).max() < 1e-4
+
+
+def test_region_blocks_keep_each_vertex_weights(db):
+    order, starts, regions, weights = region_blocks(db.regions)
+    assert sorted(order) == list(range(db.n_vertices)) and starts[-1] == db.n_vertices
+    dense = np.zeros((db.n_vertices, 7))
+    for b in range(len(regions)):
+        for j, g in enumerate(regions[b]):
+            if g >= 0:
+                dense[order[starts[b]:starts[b + 1]], g] = weights[j, starts[b]:starts[b + 1]]
+    assert np.allclose(dense.sum(axis=1), 1.0)
+    top = np.argsort(-db.regions, axis=1)[:, :4]
+    keep = np.take_along_axis(db.regions, top, axis=1)
+    assert np.allclose(np.take_along_axis(dense, top, axis=1), keep / keep.sum(axis=1, keepdims=True), atol=1e-6)
+
+
+def test_set_shape_swaps_state_and_reports(db, body, exact_engine):
+    before = exact_engine._state
+    report = exact_engine.set_shape(db.training_betas[1])
+    assert exact_engine._state is not before and not report.clamped and report.seconds > 0
+    assert np.allclose(report.effective, db.training_betas[1])
+
+
+def test_load_engine_from_file(db, body, tmp_path):
+    path = write_database(tmp_path / "tiny.h5", db)
+    engine = load_engine(path, EXACT, body=body)
+    assert engine.n_vertices == db.n_vertices
+    assert np.abs(engine.synthesize(db.anchor_poses[0]) - Engine(db, body, EXACT).synthesize(db.anchor_poses[0])
+                  ).max() < 1e-6
+    with pytest.raises(DatabaseError, match="not found"):
+        load_engine(tmp_path / "missing.h5", body=body)
