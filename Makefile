@@ -9,7 +9,7 @@ PIP := $(BIN)/python -m pip
 RUNTIME_STAMP := $(VENV)/.stamp-runtime
 TEST_STAMP := $(VENV)/.stamp-test
 
-.PHONY: setup setup-test test run bench
+.PHONY: setup setup-test test run bench bench-node
 
 setup: $(RUNTIME_STAMP)
 
@@ -36,9 +36,13 @@ $(TEST_STAMP): requirements/test.txt requirements/build.txt $(RUNTIME_STAMP)
 test: setup-test
 	$(BIN)/python -m pytest -q test
 
-# Writes a PNG of dressed, posed bodies (the path is printed).
+# Node + demo motion + web viewer on the default configuration (prints the URL to open); Ctrl-C stops all three.
 run: setup
-	$(BIN)/agentdress demo-png
+	$(BIN)/python -m agentdress_ros.ros.run_all
 
 bench: setup
 	$(BIN)/agentdress bench body
+
+# End-to-end node benchmark over real DDS (JSON on stdout): latency, rate, dropped ticks, CPU at 90 Hz.
+bench-node: setup
+	$(BIN)/python -m agentdress_ros.evaluate.bench_node

@@ -1,0 +1,403 @@
+"""agentdress_node: dresses the agent of a JointState stream (wiring only; the work lives in runtime/inputs/params).
+
+Topics (relative to the node, `~` = /agentdress_node):
+  in   <joint_state_topic>  sensor_msgs/JointState        (QoS qos.joint_states.*, default best effort, depth 1)
+  in   <shape_topic>        std_msgs/Float32MultiArray    (QoS qos.shape.*, default reliable, depth 1)
+  out  ~/<garment>/points   sensor_msgs/PointCloud2       every tick with a new pose (qos.points.*: best effort, 1)
+  out  ~/<garment>/mesh     shape_msgs/Mesh               reliable, transient local: once per garment (re)build
+  out  ~/body/points, ~/body/mesh                         only with publish_body
+  out  ~/marker             visualization_msgs/Marker     only with marker_rate_hz > 0 (one per garment, ns = name)
+  out  ~/status             std_msgs/String (JSON)        at status_rate_hz
+
+The status is JSON on a String rather than diagnostic_msgs on /diagnostics: its content is nested (timings,
+counts by reason, per-garment facts) and the bench, the viewer and the tests parse it directly; DiagnosticArray
+would flatten it into string key/values and needs an aggregator to be readable.
+
+Timer ticks do nothing when no new pose arrived and nothing changed, except re-publishing the last clouds at
+keepalive_hz (default 1 Hz: a display that joins late, or a best-effort sample lost on the way, is repaired within a
+second for the cost of one publish per garment per second, with no synthesis).
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState, PointCloud2
+from shape_msgs.msg import Mesh
+from std_msgs.msg import Float32MultiArray, String
+from visualization_msgs.msg import Marker
+
+from ..garment import TEMPLATES
+from .garment_models import GarmentDatabaseError
+from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
+from .messages import make_marker, make_mesh, make_point_cloud, set_cloud_vertices, stamp_from_ns
+from .params import PARAMETERS, ParameterError, check_garment_config, database_file_problem, validate
+from .runtime import GarmentSpec, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set
+
+NODE_NAME = "agentdress_node"
+TOPOLOGY_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class ConfigError(RuntimeError):
+    """The node cannot start with this configuration; the message says which parameter and why."""
+
+
+def _qos(reliability: str, depth: int) -> QoSProfile:
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
+                      reliability=ReliabilityPolicy.BEST_EFFORT if reliability == "best_effort"
+                      else ReliabilityPolicy.RELIABLE)
+
+
+class Throttle:
+    """At most one message per key per `period` seconds; counts what it held back."""
+
+    def __init__(self, period: float):
+        self.period, self.last, self.held = period, {}, {}
+
+    def allow(self, key: str, now: float) -> tuple[bool, int]:
+        if now - self.last.get(key, -1e18) >= self.period:
+            self.last[key] = now
+            return True, self.held.pop(key, 0)
+        self.held[key] = self.held.get(key, 0) + 1
+        return False, 0
+
+
+class AgentDressNode(Node):
+    def __init__(self, body=None, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        for name, spec in PARAMETERS.items():
+            self.declare_parameter(name, spec.default, ParameterDescriptor(
+                description=spec.description + ("" if spec.runtime else " (startup only)"), dynamic_typing=True))
+        self.config = self._read_config()
+        self.throttle = Throttle(self.config["warn_throttle_s"])
+        self.stats = TickStats()
+        self.pose = PoseInput()
+        self.guard = OutputGuard()
+        self._lock = threading.Lock()  # guards publishers against the marker thread
+
+        from ..body import AnnyBody
+
+        self.body = body if body is not None else AnnyBody()
+        start = time.perf_counter()
+        model_set = build_model_set(self._scene(), self.body)  # GarmentDatabaseError names the file: exit
+        self._prepare(model_set, None)
+        for warning in model_set.warnings:
+            self.get_logger().warning(warning)
+        self.get_logger().info(f"garment models ready in {time.perf_counter() - start:.2f} s: " + ", ".join(
+            f"{n} ({m.kind}, {m.n_vertices} vertices)" for n, m in model_set.models.items()))
+        self.models, self.model_set = {}, None
+        self.point_pubs, self.mesh_pubs, self.clouds = {}, {}, {}
+        self._install(model_set)
+        self.worker = ModelWorker(self.body, model_set, on_error=lambda m: self._warn("rebuild", m),
+                                  on_built=self._on_built, prepare=self._prepare)
+
+        self.create_subscription(JointState, self.config["joint_state_topic"], self._on_joint_state,
+                                 _qos(self.config["qos.joint_states.reliability"], self.config["qos.joint_states.depth"]))
+        self.create_subscription(Float32MultiArray, self.config["shape_topic"], self._on_shape,
+                                 _qos(self.config["qos.shape.reliability"], self.config["qos.shape.depth"]))
+        self.status_pub = self.create_publisher(String, "~/status", 10)
+        self.marker_pub = None
+        self._marker_job, self._marker_event = None, threading.Event()
+        self._done_version, self._dirty, self._last_publish = -1, True, 0.0
+        self._timer_by_key = {}
+        self._set_timer("tick", self.config["rate_hz"], self._on_tick)
+        self._set_timer("status", self.config["status_rate_hz"], self._on_status)
+        self._set_timer("marker", self.config["marker_rate_hz"], self._on_marker)
+        self._marker_thread = threading.Thread(target=self._marker_loop, name="agentdress-marker", daemon=True)
+        self._marker_thread.start()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
+
+    # ---- configuration -------------------------------------------------------------------------------------------
+    def _read_config(self) -> dict:
+        config = {}
+        for name in PARAMETERS:
+            try:
+                config[name] = validate(name, self.get_parameter(name).value)
+            except ParameterError as error:
+                raise ConfigError(f"parameter {error}" if not str(error).startswith(name) else str(error)) from None
+        try:
+            check_garment_config(config["garments"], config["garment_databases"], TEMPLATES)
+        except ParameterError as error:
+            raise ConfigError(str(error)) from None
+        return config
+
+    def _scene(self, config=None, beta=None) -> SceneSpec:
+        config = config or self.config
+        garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g))
+                         for g in config["garments"])
+        if beta is None:
+            beta = check_shape_values(config["shape"]).beta
+        return SceneSpec(garments, config["publish_body"], tuple(float(b) for b in beta), config["skinned_fallback"])
+
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        """Validate a `ros2 param set` (all parameters of one request together); reject with the reason."""
+        config = dict(self.config)
+        try:
+            for p in parameters:
+                if p.name not in PARAMETERS:
+                    raise ParameterError(f"unknown parameter {p.name!r}")
+                if not PARAMETERS[p.name].runtime:
+                    raise ParameterError(f"{p.name} is read at startup only: restart the node to change it")
+                config[p.name] = validate(p.name, p.value)
+            check_garment_config(config["garments"], config["garment_databases"], TEMPLATES)
+            if any(p.name in ("garments", "garment_databases") for p in parameters):
+                for g in config["garments"]:
+                    path = config["garment_databases"].get(g)
+                    problem = path and not config["skinned_fallback"] and database_file_problem(path)
+                    if problem:
+                        raise ParameterError(f"garment {g!r}: {problem}")
+        except ParameterError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        return SetParametersResult(successful=True)
+
+    def _after_set_parameters(self, parameters):
+        changed = {p.name for p in parameters}
+        for p in parameters:
+            self.config[p.name] = validate(p.name, p.value)
+        for name, key, callback in (("rate_hz", "tick", self._on_tick), ("status_rate_hz", "status", self._on_status),
+                                    ("marker_rate_hz", "marker", self._on_marker)):
+            if name in changed:
+                self._set_timer(key, self.config[name], callback)
+        if "warn_throttle_s" in changed:
+            self.throttle.period = self.config["warn_throttle_s"]
+        if "frame_id" in changed:
+            self._dirty = True
+        if "shape" in changed:
+            self._apply_shape(self.config["shape"], "shape parameter")
+        if changed & {"garments", "garment_vertices", "garment_databases", "publish_body", "skinned_fallback"}:
+            scene = self._scene(beta=self.worker.wanted.beta)
+            self.worker.request(garments=scene.garments, publish_body=scene.publish_body,
+                                skinned_fallback=scene.skinned_fallback)
+
+    def _set_timer(self, key, rate_hz, callback):
+        old = self._timer_by_key.pop(key, None)
+        if old is not None:
+            self.destroy_timer(old)
+        if rate_hz > 0:
+            self._timer_by_key[key] = self.create_timer(1.0 / rate_hz, callback)
+        if key == "marker" and rate_hz > 0 and getattr(self, "marker_pub", None) is None:
+            self.marker_pub = self.create_publisher(Marker, "~/marker", 10)
+
+    # ---- models --------------------------------------------------------------------------------------------------
+    def _prepare(self, model_set, previous):
+        """Worker thread: topology messages for models that are new (not reused or refitted clones)."""
+        for name, model in model_set.models.items():
+            if previous is not None and previous.specs.get(name) == model_set.specs[name]:
+                continue  # the same garment refitted to a new shape: same topology, nothing to re-send
+            vertices = model.synthesize(np.zeros((self.body.n_bones, 3)), np.zeros(3))
+            model_set.topology[name] = make_mesh(vertices, model.faces)
+
+    def _on_built(self, model_set, seconds):
+        for warning in model_set.warnings:
+            self._warn("fallback", warning)
+        # A new garment or level of detail is news; a shape refit (up to once a second from a sweep) is not.
+        log = self.get_logger().info if model_set.topology else self.get_logger().debug
+        log(f"garment models rebuilt in {1e3 * seconds:.0f} ms (generation {model_set.generation}): "
+            + ", ".join(f"{n} ({m.n_vertices} vertices)" for n, m in model_set.models.items()))
+
+    def _install(self, model_set):
+        """Executor thread: make `model_set` live; (re)publish topology of new models; drop removed garments."""
+        with self._lock:
+            for name in [n for n in self.point_pubs if n not in model_set.models]:
+                self.destroy_publisher(self.point_pubs.pop(name))
+                self.destroy_publisher(self.mesh_pubs.pop(name))
+                self.clouds.pop(name, None)
+                self.guard.reset(name)
+            points_qos = _qos(self.config["qos.points.reliability"], self.config["qos.points.depth"])
+            for name, model in model_set.models.items():
+                if name not in self.point_pubs:
+                    self.point_pubs[name] = self.create_publisher(PointCloud2, f"~/{name}/points", points_qos)
+                    self.mesh_pubs[name] = self.create_publisher(Mesh, f"~/{name}/mesh", TOPOLOGY_QOS)
+                if name in model_set.topology:
+                    self.guard.reset(name)  # a new topology: the last good frame of the old one no longer fits
+                    self.clouds.pop(name, None)
+                    self.mesh_pubs[name].publish(model_set.topology[name])
+            self.models, self.model_set = dict(model_set.models), model_set
+            self._dirty = True
+
+    # ---- inputs --------------------------------------------------------------------------------------------------
+    def _warn(self, key: str, message: str):
+        allowed, held = self.throttle.allow(key, time.monotonic())
+        if allowed:
+            suffix = f" ({held} similar messages suppressed)" if held else ""
+            self.get_logger().warning(message + suffix)
+
+    def _reject(self, topic: str, error: InputRejected):
+        self.stats.rejected[f"{topic}/{error.reason}"] += 1
+        self._warn(f"{topic}/{error.reason}", f"rejected {topic} message ({error.reason}): {error}")
+
+    def _on_joint_state(self, msg: JointState):
+        self.stats.counts["joint_states_received"] += 1
+        try:
+            unknown = self.pose.accept(msg.name, msg.position, stamp_to_ns(msg.header.stamp.sec,
+                                                                              msg.header.stamp.nanosec))
+            if unknown:  # reported once per name, never throttled away
+                self.stats.counts["unknown_joint_names"] += len(unknown)
+                self.get_logger().warning(f"ignoring unknown joint names (reported once): {', '.join(unknown)}")
+        except InputRejected as error:
+            self._reject("joint_states", error)
+        except Exception as error:  # never let a message kill the node
+            self._reject("joint_states", InputRejected("internal_error", repr(error)))
+
+    def _on_shape(self, msg: Float32MultiArray):
+        self.stats.counts["shapes_received"] += 1
+        try:
+            self._apply_shape(msg.data, "body_shape")
+        except InputRejected as error:
+            self._reject("body_shape", error)
+        except Exception as error:
+            self._reject("body_shape", InputRejected("internal_error", repr(error)))
+
+    def _apply_shape(self, values, source: str):
+        update = check_shape_values(values)
+        if update.clamped:
+            self.stats.counts["shapes_clamped"] += 1
+            self._warn(f"{source}/clamped", f"{source}: {update.message}")
+        self.worker.request(beta=tuple(float(b) for b in update.beta))
+
+    # ---- per-frame path ------------------------------------------------------------------------------------------
+    def _on_tick(self):
+        now = time.monotonic()
+        self.stats.tick(now, 1.0 / self.config["rate_hz"])
+        ready = self.worker.take_ready()
+        if ready is not None:
+            self._install(ready)
+        if self.pose.version == self._done_version and not self._dirty:
+            keepalive = self.config["keepalive_hz"]
+            if keepalive > 0 and now - self._last_publish >= 1.0 / keepalive and self.clouds:
+                for name, cloud in self.clouds.items():
+                    self.point_pubs[name].publish(cloud)
+                self.stats.counts["keepalive_frames"] += 1
+                self._last_publish = now
+            self.stats.counts["idle_ticks"] += 1
+            return
+        start = time.perf_counter()
+        rotvecs, translation = self.pose.rotvecs, self.pose.root_translation
+        stamp = stamp_from_ns(self.pose.stamp_ns or self.get_clock().now().nanoseconds)
+        synthesis = 0.0
+        for name, model in self.models.items():
+            t0 = time.perf_counter()
+            try:
+                vertices = model.synthesize(rotvecs, translation)
+            except Exception as error:
+                vertices = None
+                self._warn(f"synthesis/{name}", f"{name}: synthesis failed ({error!r}); re-sending the last good frame")
+            synthesis += time.perf_counter() - t0
+            frame, problem = self.guard.check(name, vertices)
+            if problem:
+                self.stats.counts[f"{problem}:{name}"] += 1
+                if problem == "non_finite_output":
+                    self._warn(f"nonfinite/{name}", f"{name}: synthesis produced non-finite vertices; "
+                                                    "re-sending the last good frame")
+            if frame is None:
+                continue
+            cloud = self.clouds.get(name)
+            if cloud is None:
+                cloud = self.clouds[name] = make_point_cloud()
+            set_cloud_vertices(cloud, frame, stamp, self.config["frame_id"])
+            self.point_pubs[name].publish(cloud)
+        self.stats.counts["published_frames"] += 1
+        self.stats.counts["computed_ticks"] += 1
+        self.stats.synthesis_ms.append(1e3 * synthesis)
+        self.stats.tick_ms.append(1e3 * (time.perf_counter() - start))
+        self._done_version, self._dirty, self._last_publish = self.pose.version, False, now
+
+    # ---- status and markers --------------------------------------------------------------------------------------
+    def status(self) -> dict:
+        now = time.monotonic()
+        counts = dict(self.stats.counts)
+        return {
+            "node": self.get_fully_qualified_name(),
+            "rate_hz": self.config["rate_hz"],
+            "tick_rate_hz": round(self.stats.rate(now), 2),
+            "synthesis_ms": TickStats.percentiles(self.stats.synthesis_ms),
+            "tick_ms": TickStats.percentiles(self.stats.tick_ms),
+            "published_frames": counts.pop("published_frames", 0),
+            "keepalive_frames": counts.pop("keepalive_frames", 0),
+            "late_ticks": counts.pop("late_ticks", 0),
+            "rejected": dict(self.stats.rejected),
+            "counts": counts,
+            "unknown_joint_names": sorted(self.pose.unknown_names)[:50],
+            "garments": {n: {"kind": m.kind, "vertices": m.n_vertices, "faces": len(m.faces)}
+                         for n, m in self.models.items()},
+            "shape": list(self.model_set.scene.beta),
+            "model_generation": self.model_set.generation,
+            "pid": os.getpid(),
+        }
+
+    def _on_status(self):
+        self.status_pub.publish(String(data=json.dumps(self.status())))
+
+    def _on_marker(self):
+        if self.marker_pub is None:
+            return
+        # Snapshot references only; the marker thread builds the messages (tens of ms each) off the executor.
+        frames = {n: (self.guard.last_good[n].copy(), self.models[n].faces) for n in self.models
+                  if n in self.guard.last_good}
+        stamp = self.clouds[next(iter(self.clouds))].header.stamp if self.clouds else self.get_clock().now().to_msg()
+        self._marker_job = (frames, stamp, self.config["frame_id"])
+        self._marker_event.set()
+
+    def _marker_loop(self):
+        while rclpy.ok(context=self.context):
+            if not self._marker_event.wait(timeout=0.5):
+                continue
+            self._marker_event.clear()
+            job, self._marker_job = self._marker_job, None
+            if job is None:
+                continue
+            frames, stamp, frame_id = job
+            colors = ((0.2, 0.45, 0.85, 1.0), (0.25, 0.25, 0.3, 1.0), (0.85, 0.4, 0.2, 1.0), (0.9, 0.75, 0.6, 1.0))
+            for i, (name, (vertices, faces)) in enumerate(frames.items()):
+                marker = make_marker(vertices, faces, name, i, frame_id, stamp, colors[i % len(colors)])
+                with self._lock:
+                    if self.marker_pub is not None:
+                        self.marker_pub.publish(marker)
+
+    def destroy_node(self):
+        self.worker.stop()
+        return super().destroy_node()
+
+
+def main(args=None) -> int:
+    """Console script `agentdress_node [--ros-args ...]`. Exit status 0 on Ctrl-C / SIGTERM, 2 when the
+    configuration cannot start (the reason, naming the parameter or database file, goes to stderr)."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)  # multi-threaded BLAS on 2 cores slowed mid-size products ~100x here
+    rclpy.init(args=args if args is not None else sys.argv)
+    node = None
+    try:
+        try:
+            node = AgentDressNode()
+        except (ConfigError, GarmentDatabaseError, ValueError) as error:
+            message = f"agentdress_node: error: {error}"
+            print(message, file=sys.stderr, flush=True)
+            return 2
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            executor.spin()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        return 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,174 @@
+"""The node's parameters: defaults, descriptions, validation (pure functions, no rclpy: tested directly).
+
+`validate(name, value, current)` returns the coerced value or raises ParameterError with the reason the parameter
+callback hands back to `ros2 param set`. Parameters marked `runtime=False` are read at startup only (changing them
+is rejected with "restart the node"): topics and QoS, since re-creating subscriptions mid-stream would drop data.
+
+Per-garment settings are string lists of "garment:value" entries, so a garment list change never has to keep two
+parallel arrays in step:
+    garment_vertices:  ["tshirt:3000", "trousers:8000"]   vertex budget (level of detail) of a skinned template
+    garment_databases: ["tshirt:data/tshirt_default.h5"]  AgentDress database of a garment (else skinned)
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..body import PHENOTYPE_NAMES
+
+__all__ = ["PARAMETERS", "ParameterError", "Spec", "parse_garment_map", "validate"]
+
+QOS_RELIABILITY = ("best_effort", "reliable")
+_GARMENT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")  # becomes a topic token: ~/<garment>/points
+
+
+class ParameterError(ValueError):
+    """A rejected parameter value; the message is the reason."""
+
+
+@dataclass(frozen=True)
+class Spec:
+    default: object
+    description: str
+    runtime: bool = True  # may change while the node runs
+
+
+PARAMETERS: dict[str, Spec] = {
+    "rate_hz": Spec(90.0, "garment output rate (timer frequency), Hz, in (0, 1000]"),
+    "keepalive_hz": Spec(1.0, "re-publish the last clouds at this rate when no new pose arrived and nothing "
+                              "changed (late subscribers get a frame within 1 s at no synthesis cost); 0 = off"),
+    "marker_rate_hz": Spec(0.0, "visualization_msgs/Marker TRIANGLE_LIST rate for RViz, Hz, in [0, 10]; 0 = off"),
+    "status_rate_hz": Spec(1.0, "rate of the JSON status on ~/status, Hz, in (0, 50]"),
+    "publish_body": Spec(False, "also publish the posed body surface on ~/body/points and ~/body/mesh"),
+    "frame_id": Spec("agent", "frame_id stamped on every published message"),
+    "joint_state_topic": Spec("joint_states", "sensor_msgs/JointState input topic", runtime=False),
+    "shape_topic": Spec("body_shape", "std_msgs/Float32MultiArray body-shape input topic", runtime=False),
+    "garments": Spec(["tshirt"], "garments to dress the agent in (templates tshirt, longsleeve, trousers)"),
+    "garment_vertices": Spec([], "per-garment vertex budget 'name:count' of skinned templates (level of detail)"),
+    "garment_databases": Spec([], "per-garment AgentDress database 'name:path.h5' (relative to the working dir)"),
+    "skinned_fallback": Spec(False, "if a garment's database is missing or unusable, dress it with the skinned "
+                                    "template (warned) instead of exiting with an error"),
+    "shape": Spec([0.5, 0.5, 0.5, 0.5, 0.5, 0.5], "initial body shape (gender, age, muscle, weight, height, "
+                                                  "proportions), each in [0, 1]; setting it changes the shape"),
+    "warn_throttle_s": Spec(5.0, "at most one warning per kind per this many seconds, in (0, 3600]"),
+    "qos.joint_states.reliability": Spec("best_effort", "JointState subscription reliability", runtime=False),
+    "qos.joint_states.depth": Spec(1, "JointState subscription depth (keep last)", runtime=False),
+    "qos.shape.reliability": Spec("reliable", "body shape subscription reliability", runtime=False),
+    "qos.shape.depth": Spec(1, "body shape subscription depth (keep last)", runtime=False),
+    "qos.points.reliability": Spec("best_effort", "PointCloud2 publisher reliability", runtime=False),
+    "qos.points.depth": Spec(1, "PointCloud2 publisher depth (keep last)", runtime=False),
+}
+
+
+def _number(name, value, low, high, low_open=False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ParameterError(f"{name} must be a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value) or value < low or value > high or (low_open and value == low):
+        bracket = "(" if low_open else "["
+        raise ParameterError(f"{name} must be in {bracket}{low:g}, {high:g}], got {value:g}")
+    return value
+
+
+def _string_list(name, value) -> list[str]:
+    if value is None:  # an empty YAML list arrives as "not set"
+        return []
+    if isinstance(value, str) or not all(isinstance(v, str) for v in value):
+        raise ParameterError(f"{name} must be a list of strings, got {value!r}")
+    return [v for v in value if v != ""]
+
+
+def parse_garment_map(name: str, value) -> dict[str, str]:
+    """["tshirt:3000", ...] -> {"tshirt": "3000"}; ParameterError for entries without a colon or repeated keys."""
+    result = {}
+    for entry in _string_list(name, value):
+        key, sep, item = entry.partition(":")
+        key, item = key.strip(), item.strip()
+        if not sep or not key or not item:
+            raise ParameterError(f"{name}: entry {entry!r} must look like 'garment:value'")
+        if key in result:
+            raise ParameterError(f"{name}: garment {key!r} appears twice")
+        result[key] = item
+    return result
+
+
+def validate(name: str, value):
+    """Coerce and check one parameter value; raises ParameterError with the reason."""
+    if name in ("rate_hz",):
+        return _number(name, value, 0.0, 1000.0, low_open=True)
+    if name == "keepalive_hz":
+        return _number(name, value, 0.0, 100.0)
+    if name == "marker_rate_hz":
+        return _number(name, value, 0.0, 10.0)
+    if name == "status_rate_hz":
+        return _number(name, value, 0.0, 50.0, low_open=True)
+    if name == "warn_throttle_s":
+        return _number(name, value, 0.0, 3600.0, low_open=True)
+    if name in ("publish_body", "skinned_fallback"):
+        if not isinstance(value, bool):
+            raise ParameterError(f"{name} must be true or false, got {value!r}")
+        return value
+    if name in ("frame_id", "joint_state_topic", "shape_topic"):
+        if not isinstance(value, str) or not value.strip():
+            raise ParameterError(f"{name} must be a non-empty string, got {value!r}")
+        return value.strip()
+    if name == "garments":
+        garments = _string_list(name, value)
+        for g in garments:
+            if not _GARMENT_NAME.match(g) or g == "body":
+                raise ParameterError(f"garments: {g!r} is not a valid garment name (letters, digits, _; not 'body')")
+        if len(set(garments)) != len(garments):
+            raise ParameterError(f"garments: names repeat in {garments}")
+        return garments
+    if name == "garment_vertices":
+        budgets = {}
+        for key, item in parse_garment_map(name, value).items():
+            try:
+                count = int(item)
+            except ValueError:
+                raise ParameterError(f"garment_vertices: {key}: {item!r} is not an integer") from None
+            if not 100 <= count <= 200_000:
+                raise ParameterError(f"garment_vertices: {key}: {count} must be in [100, 200000]")
+            budgets[key] = count
+        return budgets
+    if name == "garment_databases":
+        return parse_garment_map(name, value)
+    if name == "shape":
+        if value is None or isinstance(value, (str, bool)) or not hasattr(value, "__len__"):
+            raise ParameterError(f"shape must be a list of {len(PHENOTYPE_NAMES)} numbers, got {value!r}")
+        values = list(value)
+        if len(values) != len(PHENOTYPE_NAMES):
+            raise ParameterError(f"shape needs {len(PHENOTYPE_NAMES)} values ({', '.join(PHENOTYPE_NAMES)}), "
+                                 f"got {len(values)}")
+        bad = [n for n, v in zip(PHENOTYPE_NAMES, values) if isinstance(v, bool) or not isinstance(v, (int, float))
+               or not math.isfinite(v)]
+        if bad:
+            raise ParameterError(f"shape has non-finite or non-numeric values for {', '.join(bad)}")
+        return [float(v) for v in values]
+    if name.startswith("qos.") and name.endswith(".reliability"):
+        if value not in QOS_RELIABILITY:
+            raise ParameterError(f"{name} must be one of {QOS_RELIABILITY}, got {value!r}")
+        return value
+    if name.startswith("qos.") and name.endswith(".depth"):
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 1000:
+            raise ParameterError(f"{name} must be an integer in [1, 1000], got {value!r}")
+        return value
+    raise ParameterError(f"unknown parameter {name!r}")
+
+
+def check_garment_config(garments, databases: dict, known_garments) -> None:
+    """Cross-parameter check: every garment is a known template or has a database. Entries of the per-garment maps
+    for garments not listed are kept (they apply once the garment is listed). Missing database files are not checked
+    here (startup names the file and exits; see make_garment_model)."""
+    for g in garments:
+        if g not in known_garments and g not in databases:
+            raise ParameterError(f"garments: {g!r} is neither a template ({', '.join(known_garments)}) nor has a "
+                                 "database in garment_databases")
+
+
+def database_file_problem(path: str) -> str:
+    """'' when `path` is a readable file, else the reason naming the file (for the runtime parameter callback)."""
+    resolved = Path(path).expanduser().resolve()
+    return "" if resolved.is_file() else f"database file {resolved} does not exist"
