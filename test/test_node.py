@@ -29,7 +29,7 @@ from agentdress_ros.ros.messages import cloud_to_vertices, mesh_to_arrays  # noq
 
 DOMAIN_ID = random.SystemRandom().randint(1, 200)
 VERTICES = {"tshirt": 1500, "trousers": 1200}
-START_SHAPE = [0.5] * 6  # config/agentdress.yaml
+START_SHAPE = [0.5, 0.6667, 0.5, 0.5, 0.5, 0.5]  # config/agentdress.yaml
 BEST_EFFORT = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
 TOPOLOGY = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)

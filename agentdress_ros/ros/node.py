@@ -109,6 +109,7 @@ class AgentDressNode(Node):
         self.marker_pub = None
         self._marker_job, self._marker_event = None, threading.Event()
         self._done_version, self._dirty, self._last_publish = -1, True, 0.0
+        self._last_compute = 0.0
         self._timer_by_key = {}
         self._set_timer("tick", self.config["rate_hz"], self._on_tick)
         self._set_timer("status", self.config["status_rate_hz"], self._on_status)
@@ -247,8 +248,15 @@ class AgentDressNode(Node):
                 self.get_logger().warning(f"ignoring unknown joint names (reported once): {', '.join(unknown)}")
         except InputRejected as error:
             self._reject("joint_states", error)
+            return
         except Exception as error:  # never let a message kill the node
             self._reject("joint_states", InputRejected("internal_error", repr(error)))
+            return
+        # Answer now rather than at the next tick (up to a period later). Arrivals closer than half a period to
+        # the last answer wait for the timer, which dresses the newest one: a flood cannot exceed twice rate_hz,
+        # and a sender at rate_hz (jittering around one period) is still answered on arrival.
+        if self.config["answer_on_arrival"] and time.monotonic() - self._last_compute >= 0.5 / self.config["rate_hz"]:
+            self._on_tick(from_timer=False)
 
     def _on_shape(self, msg: Float32MultiArray):
         self.stats.counts["shapes_received"] += 1
@@ -267,9 +275,10 @@ class AgentDressNode(Node):
         self.worker.request(beta=tuple(float(b) for b in update.beta))
 
     # ---- per-frame path ------------------------------------------------------------------------------------------
-    def _on_tick(self):
+    def _on_tick(self, from_timer: bool = True):
         now = time.monotonic()
-        self.stats.tick(now, 1.0 / self.config["rate_hz"])
+        if from_timer:  # the tick-rate statistics describe the timer, not the arrivals
+            self.stats.tick(now, 1.0 / self.config["rate_hz"])
         ready = self.worker.take_ready()
         if ready is not None:
             self._install(ready)
@@ -312,6 +321,7 @@ class AgentDressNode(Node):
         self.stats.synthesis_ms.append(1e3 * synthesis)
         self.stats.tick_ms.append(1e3 * (time.perf_counter() - start))
         self._done_version, self._dirty, self._last_publish = self.pose.version, False, now
+        self._last_compute = now
 
     # ---- status and markers --------------------------------------------------------------------------------------
     def status(self) -> dict:

@@ -42,6 +42,8 @@ PARAMETERS: dict[str, Spec] = {
     "marker_rate_hz": Spec(0.0, "visualization_msgs/Marker TRIANGLE_LIST rate for RViz, Hz, in [0, 10]; 0 = off"),
     "status_rate_hz": Spec(1.0, "rate of the JSON status on ~/status, Hz, in (0, 50]"),
     "publish_body": Spec(False, "also publish the posed body surface on ~/body/points and ~/body/mesh"),
+    "answer_on_arrival": Spec(True, "dress a new pose as soon as it arrives (unless within half a period of the last "
+                                    "answer: the timer takes those), so latency is not tied to the timer's phase"),
     "frame_id": Spec("agent", "frame_id stamped on every published message"),
     "joint_state_topic": Spec("joint_states", "sensor_msgs/JointState input topic", runtime=False),
     "shape_topic": Spec("body_shape", "std_msgs/Float32MultiArray body-shape input topic", runtime=False),
@@ -50,7 +52,7 @@ PARAMETERS: dict[str, Spec] = {
     "garment_databases": Spec([], "per-garment AgentDress database 'name:path.h5' (relative to the working dir)"),
     "skinned_fallback": Spec(False, "if a garment's database is missing or unusable, dress it with the skinned "
                                     "template (warned) instead of exiting with an error"),
-    "shape": Spec([0.5, 0.5, 0.5, 0.5, 0.5, 0.5], "initial body shape (gender, age, muscle, weight, height, "
+    "shape": Spec([0.5, 2.0 / 3.0, 0.5, 0.5, 0.5, 0.5], "initial body shape (gender, age, muscle, weight, height, "
                                                   "proportions), each in [0, 1]; setting it changes the shape"),
     "warn_throttle_s": Spec(5.0, "at most one warning per kind per this many seconds, in (0, 3600]"),
     "qos.joint_states.reliability": Spec("best_effort", "JointState subscription reliability", runtime=False),
@@ -106,7 +108,7 @@ def validate(name: str, value):
         return _number(name, value, 0.0, 50.0, low_open=True)
     if name == "warn_throttle_s":
         return _number(name, value, 0.0, 3600.0, low_open=True)
-    if name in ("publish_body", "skinned_fallback"):
+    if name in ("publish_body", "skinned_fallback", "answer_on_arrival"):
         if not isinstance(value, bool):
             raise ParameterError(f"{name} must be true or false, got {value!r}")
         return value
