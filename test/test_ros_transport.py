@@ -23,8 +23,9 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy", reason="rclpy (ros-jazzy-rclpy wheels, requirements/runtime.txt) is not importable")
 
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+
+from agentdress_ros.ros import harness  # noqa: E402
 
 DOMAIN_ID = random.SystemRandom().randint(1, 200)
 JOINT_NAMES = ["Hips_tx", "Hips_ty", "Hips_tz", "LeftArm_rx", "LeftArm_ry", "LeftArm_rz"]
@@ -104,17 +105,8 @@ def ros_env(tmp_path_factory):
 @contextmanager
 def ros_node(name: str):
     """A node in a private rclpy context (so other tests' use of the global context does not interfere)."""
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
-    node = rclpy.create_node(name, context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    try:
-        yield node, executor
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
+    with harness.ros_node(name, DOMAIN_ID) as pair:
+        yield pair
 
 
 def spin_until(executor, done, timeout: float) -> float:
