@@ -49,6 +49,13 @@ def run_main(argv=None) -> int:
     }
     procs = {}
     code = 0
+
+    def stop(signum, frame):  # a kill or a closed terminal stops the three processes too, not only Ctrl-C
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGHUP, stop)
+    parent = os.getppid()
     try:
         for name, cmd in commands.items():
             # Own process groups: Ctrl-C reaches them once, through us, in a defined order.
@@ -56,6 +63,8 @@ def run_main(argv=None) -> int:
         print(f"agentdress run: open http://127.0.0.1:{args.port}/ in a browser (Ctrl-C stops node, demo and viewer)",
               flush=True)
         while True:
+            if os.getppid() != parent:  # whoever started us (make, a shell) is gone: do not leave orphans
+                raise StopIteration
             for name, proc in procs.items():
                 rc = proc.poll()
                 if rc is not None:
