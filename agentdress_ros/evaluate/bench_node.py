@@ -41,15 +41,6 @@ def _proc_rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def _percentiles(values) -> dict:
-    if not values:
-        return {"p50": None, "p99": None, "max": None, "n": 0}
-    array = np.asarray(values, dtype=np.float64)
-    p50, p99 = np.percentile(array, [50, 99])
-    return {"p50": round(float(p50), 3), "p99": round(float(p99), 3), "max": round(float(array.max()), 3),
-            "n": int(array.size)}
-
-
 def _run_one(vertices, rate_hz, seconds, publish_rate_hz, warmup, soak_seconds, garment, database,
              log_dir: Path) -> dict:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -59,6 +50,7 @@ def _run_one(vertices, rate_hz, seconds, publish_rate_hz, warmup, soak_seconds, 
     from ..motion.joint_names import JOINT_NAMES
     from ..motion.procedural import make_motion
     from ..ros.harness import ChildProcess, node_args, ros_env, ros_node, spin_until
+    from ..ros.runtime import percentiles
 
     env = ros_env(log_dir=str(log_dir))
     domain = int(env["ROS_DOMAIN_ID"])
@@ -131,7 +123,7 @@ def _run_one(vertices, rate_hz, seconds, publish_rate_hz, warmup, soak_seconds, 
             "rate_hz": rate_hz,
             "publish_rate_hz": publish_rate_hz,
             "seconds": round(wall, 2),
-            "latency_ms": _percentiles(state["latency"]),
+            "latency_ms": percentiles(state["latency"], digits=3),
             "clouds_per_s": round(answered / wall, 2),
             "node_tick_rate_hz": status["tick_rate_hz"],
             "late_ticks": status["late_ticks"] - status0["late_ticks"],
