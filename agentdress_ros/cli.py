@@ -59,6 +59,7 @@ def _build(args) -> int:
         clips=[str(p) for p in args.clips],
         procedural=args.procedural,
         drape=json.loads(args.drape) if args.drape else {},
+        **({"warm_drape": json.loads(args.warm_drape)} if args.warm_drape else {}),
         seed=args.seed,
     )
     report = build_database(config, args.out, workers=args.workers, scheduler=args.scheduler,
@@ -104,6 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--procedural", nargs="*", default=["idle", "walk", "reach", "sweep", "wipe", "wave", "squat"],
                        help="procedural motions for the pose set")
     build.add_argument("--drape", default="", help="JSON object of DrapeSettings overrides")
+    build.add_argument("--warm-drape", default="", help="JSON DrapeSettings overrides for drapes warm-started "
+                       "from another drape (default {\"velocity_retention\": 0.75})")
     build.add_argument("--workers", type=int, default=2, help="local worker processes (0: in this process)")
     build.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     build.add_argument("--seed", type=int, default=0)

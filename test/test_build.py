@@ -19,11 +19,11 @@ from agentdress_ros.build.shapes import shape_scale, training_shapes  # noqa: E4
 from agentdress_ros.engine.database import read_database  # noqa: E402
 
 # A coarse garment, two anchors, five shapes, short drapes: every stage runs, in about a minute.
-TINY = dict(garment="tshirt", garment_vertices=700, anchors=2, shapes=5, components=4, examples=2,
+TINY = dict(garment="tshirt", garment_vertices=700, anchors=2, shapes=5, components=4, examples=3,
             sequence_frames=2, holdout_anchors=1, procedural=["walk", "wave"],
             drape={"max_frames": 40, "min_frames": 8})
 TINY_ARGS = ["--garment", "tshirt", "--vertices", "700", "--anchors", "2", "--shapes", "5", "--components", "4",
-             "--examples", "2", "--sequence-frames", "2", "--holdout-anchors", "1", "--procedural", "walk", "wave",
+             "--examples", "3", "--sequence-frames", "2", "--holdout-anchors", "1", "--procedural", "walk", "wave",
              "--drape", json.dumps(TINY["drape"]), "--quiet"]
 
 
@@ -38,9 +38,9 @@ def test_tiny_database_builds_and_reads_back(tiny_build):
     out, report = tiny_build
     db = read_database(out)
     assert db.n_anchors == 2 and db.training_betas.shape == (5, 6) and db.n_components == 4
-    assert db.example_drapes.shape == (2, db.n_vertices, 3) and db.sequence_drapes.shape == (2, db.n_vertices, 3)
+    assert db.example_drapes.shape == (3, db.n_vertices, 3) and db.sequence_drapes.shape == (2, db.n_vertices, 3)
     assert db.build_command == "test tiny build" and db.provenance["config"]["anchors"] == 2
-    assert report["drapes"] == 2 * 5 + 1 + 2 + 2
+    assert report["drapes"] == 2 * 5 + 1 + 1 + 2  # anchors x shapes, held-out, extra example, sequence
     assert report["drape_vertices_inside_body_max"] == 0
     assert np.isfinite(db.pca_mean).all() and np.isfinite(db.ridge).all()
     # the drapes moved the cloth off its skinned warm start: the database holds information LBS does not

