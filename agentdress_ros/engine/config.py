@@ -12,12 +12,14 @@ class EngineConfig:
 
     pose_model: registered pose model name ("lbs", "examples", "sequence"; see engine.pose_models).
     neighbors: K anchors kept per region (paper: 5). Fewer is faster per vertex, blends less.
-    components: PCA components of the shape models used (None = all in the database; paper: 5). Only costs at
-        a shape change.
+    components: PCA components of the shape models used (paper: 5; None = all the database holds, which may be
+        more so that the trade can be measured). Only costs at a shape change.
     anchors: subset of anchors: None = all, an int n = n evenly spaced anchors, or a sequence of anchor indices.
         Fewer anchors: smaller memory and faster shape changes, coarser pose coverage.
     vertices: garment level of detail, optional: None = all, or a sequence of vertex indices; the engine then
         outputs only those vertices (in that order) and `Engine.faces` keeps the triangles whose corners all survive.
+    shape_model: False = the pose model alone, f(beta0, theta) skinned onto the current skeleton: no anchor blend,
+        no shape correction, no penetration handling (the cheapest output; the evaluation's "pose model alone").
     penetration: Eq. 10 re-projection along the bound body vertex normal (eps_p = penetration_margin).
     decay: Eq. 9 damping of the region distances over frames, ratio `damping` (eta). The paper picks eta per garment
         from a residual curve it does not print; 0.5 is our default (a ~1.4-frame time constant at the frame rate).
@@ -34,9 +36,10 @@ class EngineConfig:
 
     pose_model: str = "lbs"
     neighbors: int = 5
-    components: int | None = None
+    components: int | None = 5
     anchors: object = None
     vertices: object = None
+    shape_model: bool = True
     penetration: bool = True
     penetration_margin: float = 0.005
     decay: bool = True
@@ -51,6 +54,8 @@ class EngineConfig:
     def __post_init__(self):
         if self.taylor not in TAYLOR_MODES:
             raise ValueError(f"taylor must be one of {TAYLOR_MODES}, got {self.taylor!r}")
+        if not self.shape_model and self.taylor == "zeroth":
+            raise ValueError("taylor='zeroth' is a blend of anchors: it needs shape_model=True")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if int(self.neighbors) < 1:

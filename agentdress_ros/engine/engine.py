@@ -305,23 +305,26 @@ class Engine:
         pose_transforms(self._theta, self._root, self._heads0, state.heads, self.parents, self._rotations,
                         self._positions0, self._positions, self._transforms0, self.transforms)
         config = self.config
-        region_neighbours(self._theta_flat, self.features, self.dofs, self.q, self.eps, config.power,
-                          config.damping, self._distances, config.decay and self._has_distances, self.selected,
-                          self.weights)
-        self._has_distances = True
+        if config.shape_model:
+            region_neighbours(self._theta_flat, self.features, self.dofs, self.q, self.eps, config.power,
+                              config.damping, self._distances, config.decay and self._has_distances, self.selected,
+                              self.weights)
+            self._has_distances = True
         if self.mode == 2:
             pose, skinned = self._no_pose, False  # the ablation has no pose model
         else:
             pose = self.pose_model.evaluate(self._theta, self._root, frame)
             skinned = self.pose_model.skinned
         blocks = (self.block_start, self.block_regions, self.region_w, self.selected, self.weights)
-        block_accumulate(*blocks, state.deltas, self._blended)
+        if config.shape_model:  # else _blended stays all zero: the pose model alone
+            block_accumulate(*blocks, state.deltas, self._blended)
+        penetration = config.penetration and config.shape_model
         out = self._buffers[1 - self._current]
         bad = synthesize_vertices(self._zero, self.skin_indices, self.skin_weights, self.transforms,
                                   self._reference_translations, pose, skinned, self._blended, self.mode,
-                                  config.penetration, state.body_points, state.body_normals, self._clearance,
+                                  penetration, state.body_points, state.body_normals, self._clearance,
                                   self._normals, self.order, out)
-        if config.penetration:
+        if penetration:
             block_push(self._zero, *blocks, state.clearances, self._clearance, self._push)
             bad = apply_push(self._push, self._normals, self.order, out)
         if bad:

@@ -1,0 +1,378 @@
+"""`agentdress eval`: the speed-accuracy trade of the runtime engine, measured against newton ground truth.
+
+For every configuration (a row of the trade table) and in one run: the mean and 95th-percentile vertex error (cm)
+against the held-out drapes (evaluate.testset), the fraction of garment vertices inside the body, the milliseconds
+per frame on a held-out motion (one thread, median), and the temporal jitter on that motion (mean vertex
+acceleration, mm per frame^2). Writes report.json, trade.md and PNG plots (Pareto front, error vs anchors as in
+the paper's Fig. 9, error vs distance of the shape from beta0) and a stability report of extreme inputs through
+the full pipeline. Rows that lose to the skinned baseline are listed, not hidden.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+BASELINE = "skinned template fitted to beta (no database)"
+
+
+@dataclass
+class Row:
+    """One configuration of the trade table: `config` is an EngineConfig's fields, or None for the baseline."""
+
+    name: str
+    group: str
+    config: dict | None = None
+    results: dict = field(default_factory=dict)
+
+
+def trade_rows(n_anchors: int, n_components: int, quick: bool = False) -> list[Row]:
+    """The rows of the trade table (issue: K in {1, 3, 5, 8}, anchors in {8, 16, 32, all}, components in
+    {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep."""
+    rows = [
+        Row(BASELINE, "baseline"),
+        Row("lbs pose model alone (beta0 garment, beta skeleton)", "pose model", {"shape_model": False}),
+        Row("examples pose model alone", "pose model", {"shape_model": False, "pose_model": "examples"}),
+        Row("synthesis (default: lbs pose model, K=5, all anchors, 5 components, float32)", "default", {}),
+        Row("synthesis with the examples pose model", "pose model", {"pose_model": "examples"}),
+    ]
+    rows += [Row(f"synthesis K={k}", "neighbors", {"neighbors": k}) for k in (1, 3, 8)]
+    for count in (1, 2, 4, 8, 16, 32):
+        if count < n_anchors:
+            rows.append(Row(f"synthesis, {count} anchors", "anchors", {"anchors": count}))
+    for c in (2, 10):
+        if c < n_components or (c > 5 and n_components > 5):
+            rows.append(Row(f"synthesis, {min(c, n_components)} PCA components", "components",
+                            {"components": min(c, n_components)}))
+    rows += [
+        Row("synthesis, penetration handling off", "refinement", {"penetration": False}),
+        Row("synthesis, decay off", "refinement", {"decay": False}),
+        Row("synthesis, penetration and decay off", "refinement", {"penetration": False, "decay": False}),
+        Row("ablation Sec. 4.6: no first-order term (blend of re-posed anchor drapes)", "ablation",
+            {"taylor": "zeroth"}),
+        Row("synthesis, plain Taylor (Eq. 2, deltas not re-posed)", "ablation", {"taylor": "plain"}),
+        Row("synthesis, float64", "precision", {"dtype": "float64"}),
+    ]
+    return rows
+
+
+def _model(row: Row, db, body, garment):
+    """An object with set_shape(beta) and synthesize(rotvecs, root) -> (V, 3) for the row."""
+    if row.config is None:
+        from ..ros.garment_models import SkinnedGarmentModel
+
+        return SkinnedGarmentModel(garment, body)
+    from ..engine import Engine, EngineConfig
+
+    return Engine(db, body, EngineConfig(**row.config))
+
+
+def _reset(model):
+    if hasattr(model, "reset"):
+        model.reset()
+
+
+class InsideTest:
+    """Which garment vertices lie inside the posed body: the nearest body vertex's normal points away from them.
+
+    A nearest-vertex test on the 13k-vertex body (about 1 cm apart), a few milliseconds per frame; it agrees with
+    an exact closest-triangle test except within a few millimetres of the skin in concave places.
+    """
+
+    def __init__(self, body, beta, pose):
+        from scipy.spatial import cKDTree
+
+        from ..garment.binding import vertex_normals
+
+        shape = body.shape(beta)
+        transforms, _ = body.pose(shape, pose)
+        posed = body.posed_vertices(shape, transforms)
+        ids = body.body_vertex_ids
+        normals = vertex_normals(posed, body.body_faces)
+        self.points, self.normals = posed[ids], normals[ids]
+        self.tree = cKDTree(self.points)
+
+    def fraction(self, vertices) -> float:
+        _, nearest = self.tree.query(vertices)
+        side = ((vertices - self.points[nearest]) * self.normals[nearest]).sum(axis=1)
+        return float(np.mean(side < 0.0))
+
+
+def accuracy(model, test, inside_tests) -> dict:
+    """Errors of a model on every (pose, shape) of the test set: cm mean / p95, inside fraction, per shape."""
+    errors, inside, per_shape = [], [], []
+    for k, beta in enumerate(test.betas):
+        model.set_shape(beta)
+        shape_errors = []
+        for p, pose in enumerate(test.poses):
+            _reset(model)  # independent static poses: no decay history between them
+            out = np.asarray(model.synthesize(pose, np.zeros(3)), dtype=np.float64)
+            error = np.linalg.norm(out - test.drapes[p, k], axis=1)
+            errors.append(error)
+            shape_errors.append(error.mean())
+            inside.append(inside_tests[p][k].fraction(out))
+        per_shape.append(float(np.mean(shape_errors) * 100.0))
+    errors = np.concatenate(errors)
+    return {"error_mean_cm": float(errors.mean() * 100.0), "error_p95_cm": float(np.percentile(errors, 95) * 100.0),
+            "inside_fraction": float(np.mean(inside)), "error_per_shape_cm": per_shape}
+
+
+def speed_and_jitter(model, test, beta, repeats: int = 3) -> dict:
+    """ms per frame (median over the held-out motion, best of `repeats` passes) and the mean vertex acceleration
+    (mm / frame^2) of the output along it, at shape beta."""
+    model.set_shape(beta)
+    frames = []
+    times = []
+    for r in range(repeats):
+        _reset(model)
+        for pose, root in zip(test.sequence, test.sequence_root):
+            start = time.perf_counter()
+            out = model.synthesize(pose, root)
+            times.append(time.perf_counter() - start)
+            if r == 0:
+                frames.append(np.array(out, dtype=np.float64))
+    per_pass = np.reshape(times, (repeats, -1))
+    frames = np.stack(frames)
+    acceleration = np.linalg.norm(frames[2:] - 2 * frames[1:-1] + frames[:-2], axis=2)
+    return {"ms_per_frame": float(np.median(per_pass, axis=1).min() * 1e3),
+            "jitter_mm": float(acceleration.mean() * 1e3) if len(frames) > 2 else 0.0}
+
+
+def stability_report(db, body, garment) -> list[dict]:
+    """The engine's extreme inputs through the full pipeline (default config): for each case the largest distance
+    (cm) from the skinned template at the same pose and (effective) shape, non-finite outputs and rejected frames."""
+    from ..engine import Engine, EngineConfig
+    from ..ros.garment_models import SkinnedGarmentModel
+
+    rng = np.random.default_rng(1)
+    n_bones = len(db.bone_names)
+    low, high = np.asarray(db.beta_range, dtype=np.float64).T
+    beta0 = np.asarray(db.beta0, dtype=np.float64)
+    near_pi = np.zeros((n_bones, 3))
+    near_pi[1:, 0] = np.pi - 1e-7
+    wrapped = np.asarray(db.anchor_poses[0], dtype=np.float64).copy()
+    norms = np.linalg.norm(wrapped, axis=1, keepdims=True)
+    wrapped = np.where(norms > 0, wrapped * (1.0 + 2.0 * np.pi / np.maximum(norms, 1e-12)), wrapped)
+    jump = np.asarray(db.anchor_poses[0], dtype=np.float64).copy()
+    jump_to = jump.copy()
+    jump_to[list(db.bone_names).index("LeftArm")] += np.array([np.pi, 0.0, 0.0])
+    far = rng.uniform(-3.0, 3.0, size=(n_bones, 3))
+    far[0] = 0.0
+    subnormal = np.full((n_bones, 3), 1e-310)
+    cases = [
+        ("beta at the low end of the training range", low, [db.anchor_poses[0]], None),
+        ("beta at the high end of the training range", high, [db.anchor_poses[0]], None),
+        ("beta beyond the training range (all 0, clamped)", np.zeros_like(beta0), [db.anchor_poses[0]], None),
+        ("beta beyond the training range (all 1, clamped)", np.ones_like(beta0), [db.anchor_poses[0]], None),
+        ("every joint at pi - 1e-7", beta0, [near_pi], None),
+        ("an anchor's pose wrapped by 2 pi", beta0, [wrapped], None),
+        ("pose exactly at an anchor (D = 0)", beta0, [db.anchor_poses[0]], None),
+        ("all anchors far away (random angles up to 3 rad)", beta0, [far], None),
+        ("180-degree jump of the left arm in one frame", beta0, [jump, jump_to], None),
+        ("subnormal joint angles (1e-310)", beta0, [subnormal], None),
+        ("huge root translation (1e30 m, clamped to 1e4)", beta0, [db.anchor_poses[0]], np.full(3, 1e30)),
+    ]
+    engine = Engine(db, body, EngineConfig())
+    skinned = SkinnedGarmentModel(garment, body)
+    report = []
+    for name, beta, poses, root in cases:
+        shape_report = engine.set_shape(beta)
+        skinned.set_shape(shape_report.effective)
+        engine.reset()
+        deviation, non_finite = 0.0, 0
+        bad_before = engine.bad_frames
+        for pose in poses:
+            pose = np.asarray(pose, dtype=np.float64)
+            root_in = np.zeros(3) if root is None else root
+            out = np.array(engine.synthesize(pose, root_in), dtype=np.float64)
+            non_finite += int(np.count_nonzero(~np.isfinite(out)))
+            clamped_root = np.clip(root_in, -engine.config.max_root_translation, engine.config.max_root_translation)
+            reference = np.asarray(skinned.synthesize(pose, clamped_root), dtype=np.float64)
+            distance = np.linalg.norm(out - reference, axis=1).max() if np.isfinite(out).all() else np.inf
+            deviation = max(deviation, float(distance * 100.0))
+        report.append({"case": name, "max_deviation_from_skinned_cm": deviation, "non_finite": non_finite,
+                       "rejected_frames": engine.bad_frames - bad_before, "clamped": list(shape_report.clamped_names)})
+    return report
+
+
+def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: int = 2, progress: bool = True,
+             drape: dict | None = None) -> dict:
+    """Build (or reuse) the held-out set, measure every row, write report.json, trade.md and the plots."""
+    from ..body import AnnyBody
+    from ..engine import read_database
+    from ..garment import make_garment
+    from .testset import HeldOutConfig, default_clip_paths, make_held_out_set
+
+    db = read_database(db_path)
+    body = AnnyBody()
+    garment = make_garment(db.garment, body, db.n_vertices)
+    clips = [Path(c) for c in (clips or default_clip_paths())]
+    if quick:
+        config = HeldOutConfig(clips=clips[:1], poses_per_clip=1, shapes_inside=1, shapes_outside=1,
+                               sequence_frames=30, drape={"max_frames": 60, **(drape or {})})
+    else:
+        config = HeldOutConfig(clips=clips, drape=drape or {})
+    start = time.perf_counter()
+    test = make_held_out_set(db, body, garment, config, cache, workers=workers, progress=progress)
+    ground_truth_seconds = time.perf_counter() - start
+    inside_tests = [[InsideTest(body, beta, pose) for beta in test.betas] for pose in test.poses]
+    # the same measure on the ground truth itself: what a perfect model would score
+    truth_inside = float(np.mean([inside_tests[p][k].fraction(test.drapes[p, k])
+                                  for p in range(len(test.poses)) for k in range(len(test.betas))]))
+
+    rows = trade_rows(db.n_anchors, db.n_components, quick)
+    from tqdm import tqdm
+
+    with threadpool_limits(limits=1):
+        for row in tqdm(rows, desc="configurations", disable=not progress):
+            model = _model(row, db, body, garment)
+            row.results = accuracy(model, test, inside_tests)
+            row.results.update(speed_and_jitter(model, test, test.betas[0], repeats=1 if quick else 3))
+        stability = stability_report(db, body, garment)
+
+    baseline = rows[0].results
+    for row in rows:
+        row.results["beats_baseline"] = bool(row.results["error_mean_cm"] < baseline["error_mean_cm"])
+        row.results["error_vs_baseline"] = row.results["error_mean_cm"] / baseline["error_mean_cm"]
+    z = (test.betas - np.asarray(db.beta0)) / np.asarray(db.beta_scale)
+    report = {
+        "database": str(db_path),
+        "database_anchors": db.n_anchors,
+        "database_vertices": db.n_vertices,
+        "database_components": db.n_components,
+        "test_set": {"poses": test.pose_labels, "betas": test.betas.tolist(), "shape_labels": test.shape_labels,
+                     "shape_distance_from_beta0": np.linalg.norm(z, axis=1).tolist(),
+                     "sequence_frames": int(len(test.sequence)),
+                     "drapes": len(test.drape_stats),
+                     "drape_seconds_mean": float(np.mean([s.get("seconds", np.nan) for s in test.drape_stats])),
+                     "drapes_converged": int(sum(bool(s.get("converged")) for s in test.drape_stats)),
+                     "ground_truth_inside_max": int(max(s.get("inside_count", 0) for s in test.drape_stats)),
+                     "ground_truth_inside_fraction": truth_inside,
+                     "ground_truth_seconds_this_run": ground_truth_seconds},
+        "rows": [{"name": r.name, "group": r.group, "config": r.config, **r.results} for r in rows],
+        "loses_to_baseline": [r.name for r in rows[1:] if not r.results["beats_baseline"]],
+        "stability": stability,
+    }
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    (out_dir / "trade.md").write_text(trade_markdown(report))
+    write_plots(report, out_dir)
+    return report
+
+
+def trade_markdown(report: dict) -> str:
+    lines = ["| # | configuration | mean error (cm) | p95 error (cm) | vs baseline | inside body | ms / frame | "
+             "jitter (mm/frame^2) |", "|---|---|---|---|---|---|---|---|"]
+    for i, r in enumerate(report["rows"], start=1):
+        lines.append(f"| {i} | {r['name']} | {r['error_mean_cm']:.2f} | {r['error_p95_cm']:.2f} | "
+                     f"{r['error_vs_baseline']:.2f}x | {100 * r['inside_fraction']:.2f} % | {r['ms_per_frame']:.3f} | "
+                     f"{r['jitter_mm']:.2f} |")
+    lines += ["", "| extreme input (full pipeline) | max distance from skinned (cm) | non-finite | rejected frames |",
+              "|---|---|---|---|"]
+    for s in report["stability"]:
+        lines.append(f"| {s['case']} | {s['max_deviation_from_skinned_cm']:.2f} | {s['non_finite']} | "
+                     f"{s['rejected_frames']} |")
+    truth = report["test_set"]
+    lines += ["", f"Ground truth: {truth['drapes']} newton drapes of {len(truth['poses'])} held-out poses x "
+              f"{len(truth['betas'])} shapes; {100 * truth['ground_truth_inside_fraction']:.2f} % of their vertices "
+              "inside the body by the same nearest-vertex test."]
+    losers = report["loses_to_baseline"]
+    lines += ["", "Configurations with a larger mean error than the skinned baseline: "
+              + (", ".join(losers) if losers else "none") + "."]
+    return "\n".join(lines) + "\n"
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def write_plots(report: dict, out_dir: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = report["rows"]
+    paths = []
+    # Pareto front: error vs ms per frame
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for i, r in enumerate(rows, start=1):  # points numbered as the rows of trade.md
+        marker = "s" if r["group"] == "baseline" else ("*" if r["group"] == "default" else "o")
+        ax.scatter(r["ms_per_frame"], r["error_mean_cm"], marker=marker, s=70 if marker != "o" else 25,
+                   label=r["name"][:40] if marker != "o" else None)
+        ax.annotate(str(i), (r["ms_per_frame"], r["error_mean_cm"]), fontsize=7, xytext=(3, 3),
+                    textcoords="offset points")
+    points = sorted((r["ms_per_frame"], r["error_mean_cm"]) for r in rows)
+    front, best = [], np.inf
+    for t, e in points:
+        if e < best:
+            front.append((t, e))
+            best = e
+    ax.plot(*zip(*front), "k--", lw=0.8, label="Pareto front")
+    ax.set_xlabel("ms per frame (one core)")
+    ax.set_ylabel("mean vertex error vs newton (cm)")
+    ax.set_title("Speed vs accuracy on held-out CMU poses and shapes")
+    ax.legend(fontsize=7)
+    paths.append(_save(fig, out_dir / "pareto.png"))
+
+    # error vs number of anchors (Fig. 9)
+    sweep = [(report["database_anchors"], next(r for r in rows if r["group"] == "default"))]
+    sweep += [(r["config"]["anchors"], r) for r in rows if r["group"] == "anchors"]
+    sweep.sort(key=lambda x: x[0])
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot([n for n, _ in sweep], [r["error_mean_cm"] for _, r in sweep], "o-", label="synthesis")
+    ax.axhline(rows[0]["error_mean_cm"], color="gray", ls="--", label="skinned baseline")
+    ax.set_xscale("log", base=2)
+    ax.set_xlabel("anchors used")
+    ax.set_ylabel("mean vertex error (cm)")
+    ax.set_title("Error vs number of anchors (cf. AgentDress Fig. 9)")
+    ax.legend()
+    paths.append(_save(fig, out_dir / "anchors.png"))
+
+    # error vs distance of the shape from beta0
+    distance = report["test_set"]["shape_distance_from_beta0"]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in rows:
+        if r["group"] in ("baseline", "default") or r["name"].startswith("lbs pose model alone"):
+            ax.plot(distance, r["error_per_shape_cm"], "o", label=r["name"][:48])
+    for d, label in zip(distance, report["test_set"]["shape_labels"]):
+        ax.annotate(label, (d, 0), fontsize=7, xytext=(0, 3), textcoords="offset points")
+    ax.set_xlabel("distance of the shape from beta0 (training steps, |z|)")
+    ax.set_ylabel("mean vertex error (cm)")
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=7)
+    paths.append(_save(fig, out_dir / "shape_distance.png"))
+    return paths
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="agentdress eval", description=__doc__.split("\n")[0])
+    parser.add_argument("--database", default="data/tshirt_default.h5")
+    parser.add_argument("--out", default="docs/eval", help="folder for report.json, trade.md and the plots")
+    parser.add_argument("--cache", default="out/eval-cache", help="ground-truth drapes of the held-out set")
+    parser.add_argument("--clips", nargs="*", default=None, help="held-out CMU .bvh clips (default: "
+                        "../shared/mocap/cmu/{02_01,07_12,05_12,06_14,09_01}.bvh)")
+    parser.add_argument("--quick", action="store_true", help="one pose, two shapes, short drapes (a smoke test)")
+    parser.add_argument("--workers", type=int, default=2, help="drape processes (0: in this process)")
+    parser.add_argument("--drape", default="", help="JSON DrapeSettings overrides for the ground truth")
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    report = evaluate(args.database, args.out, args.cache, clips=args.clips, quick=args.quick,
+                      workers=args.workers, progress=not args.quiet,
+                      drape=json.loads(args.drape) if args.drape else None)
+    summary = {r["name"]: {k: round(r[k], 4) for k in ("error_mean_cm", "error_p95_cm", "ms_per_frame")}
+               for r in report["rows"]}
+    print(json.dumps({"out": args.out, "rows": summary, "loses_to_baseline": report["loses_to_baseline"]}, indent=2))
+    return 0

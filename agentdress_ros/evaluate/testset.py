@@ -1,0 +1,150 @@
+"""The held-out test set of `agentdress eval`: poses from CMU clips the database never saw x body shapes inside and
+just outside its training range, with newton ground-truth drapes cached on disk (resumable like a build).
+
+`make_held_out_set(db, body, garment, HeldOutConfig, cache) -> HeldOutSet`. The drapes run through the build's job
+machinery (`build.jobs`, `build.builder.run_jobs`): one file per drape under `<cache>/drapes`, written atomically;
+kill it and rerun, and only the missing drapes are simulated. For each pose the first shape is draped from the
+skinned garment and the others warm-start from that drape, as in the build.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+# CMU clips kept out of the default database's pose set (walk, brisk walk, dance with arms high, basketball shot,
+# run): real motion the database has never seen.
+HELD_OUT_CLIPS = ("02_01", "07_12", "05_12", "06_14", "09_01")
+
+
+def default_clip_paths(root: Path | None = None) -> list[Path]:
+    """The held-out clips under ../shared/mocap/cmu (beside the repository), in HELD_OUT_CLIPS order."""
+    root = Path(root) if root is not None else Path(__file__).resolve().parents[3] / "shared" / "mocap" / "cmu"
+    return [root / f"{name}.bvh" for name in HELD_OUT_CLIPS]
+
+
+@dataclass
+class HeldOutConfig:
+    clips: list = field(default_factory=list)  # .bvh paths; the poses and the timing/jitter sequence come from them
+    poses_per_clip: int = 2
+    shapes_inside: int = 2  # random shapes inside the database's training range
+    shapes_outside: int = 1  # shapes with one trained phenotype `outside_margin` beyond the range
+    outside_margin: float = 0.05
+    sequence_frames: int = 120  # frames (at 30 fps) of the first clip for timing and temporal jitter
+    drape: dict = field(default_factory=dict)  # DrapeSettings overrides
+    warm_drape: dict = field(default_factory=lambda: {"velocity_retention": 0.75})
+    seed: int = 0
+
+
+@dataclass
+class HeldOutSet:
+    poses: np.ndarray  # (P, B, 3) canonical (root rotation removed) held-out poses
+    pose_labels: list  # "02_01@120" = clip and frame
+    betas: np.ndarray  # (S, 6)
+    shape_labels: list  # "inside" / "outside"
+    drapes: np.ndarray  # (P, S, V, 3) newton ground truth
+    sequence: np.ndarray  # (T, B, 3) held-out motion (root rotation kept) for timing and jitter
+    sequence_root: np.ndarray  # (T, 3)
+    drape_stats: list  # per drape: frames, converged, seconds, inside_count, ...
+
+
+def _trained_phenotypes(db) -> np.ndarray:
+    low, high = np.asarray(db.beta_range, dtype=np.float64).T
+    return np.flatnonzero(high - low > 1e-9)
+
+
+def held_out_shapes(db, config: HeldOutConfig) -> tuple[np.ndarray, list]:
+    """(S, 6) shapes and their labels: uniform inside the training range, then just outside it (one trained
+    phenotype past its low or high end by `outside_margin`, cycling through the phenotypes)."""
+    rng = np.random.default_rng(config.seed)
+    low, high = np.asarray(db.beta_range, dtype=np.float64).T
+    trained = _trained_phenotypes(db)
+    betas, labels = [], []
+    for _ in range(config.shapes_inside):
+        beta = np.asarray(db.beta0, dtype=np.float64).copy()
+        beta[trained] = rng.uniform(low[trained], high[trained])
+        betas.append(beta)
+        labels.append("inside")
+    for i in range(config.shapes_outside):
+        beta = np.asarray(db.beta0, dtype=np.float64).copy()
+        beta[trained] = rng.uniform(low[trained], high[trained])
+        p = trained[i % len(trained)]
+        above = high[p] + config.outside_margin
+        beta[p] = above if above <= 1.0 else low[p] - config.outside_margin
+        betas.append(np.clip(beta, 0.0, 1.0))
+        labels.append("outside")
+    return np.array(betas).reshape(-1, len(db.beta0)), labels
+
+
+def _check_held_out(db, clips) -> None:
+    built_from = {Path(c).stem for c in db.provenance.get("config", {}).get("clips", [])}
+    overlap = sorted(built_from & {Path(c).stem for c in clips})
+    if overlap:
+        raise ValueError(f"clips {overlap} were used to build the database: a test set must be held out")
+
+
+def held_out_poses(body, config: HeldOutConfig):
+    """(poses (P, B, 3) canonical, labels, sequence (T, B, 3), sequence root (T, 3)) from the held-out clips."""
+    from ..build.anchors import canonical_poses
+    from ..motion.retarget import load_cmu_motion
+
+    reference = body.shape()
+    poses, labels, sequence = [], [], None
+    for clip in config.clips:
+        motion = load_cmu_motion(clip, reference.heads, reference.tails)
+        n = motion.num_frames
+        frames = np.linspace(0.15 * n, 0.85 * n, config.poses_per_clip).round().astype(int)
+        poses.append(canonical_poses(motion.rotvecs[frames]))
+        labels += [f"{Path(clip).stem}@{f}" for f in frames]
+        if sequence is None:  # 120 fps clips, taken at 30 fps as the build's pose set
+            step = max(1, int(round(motion.fps / 30.0)))
+            sequence = (motion.rotvecs[::step][: config.sequence_frames],
+                        motion.root_translation[::step][: config.sequence_frames])
+    if sequence is None:
+        raise ValueError("the test set needs at least one held-out clip")
+    return np.concatenate(poses), labels, sequence[0], sequence[1]
+
+
+def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: int = 2, progress: bool = True) -> HeldOutSet:
+    """Poses, shapes and ground-truth drapes of the test set (drapes from `cache` when present, else simulated)."""
+    from ..build.builder import run_jobs
+    from ..build.jobs import DrapeJob, DrapeStore
+
+    if not config.clips:
+        raise ValueError("no held-out clips given")
+    missing = [str(c) for c in config.clips if not Path(c).is_file()]
+    if missing:
+        raise FileNotFoundError(f"held-out clips not found: {missing}")
+    _check_held_out(db, config.clips)
+    if garment.faces.shape != db.faces.shape or not np.array_equal(garment.faces, db.faces):
+        raise ValueError(f"garment {db.garment!r} at {db.n_vertices} vertices does not reproduce the database's "
+                         "topology; the ground truth would not match it vertex for vertex")
+    poses, labels, sequence, sequence_root = held_out_poses(body, config)
+    betas, shape_labels = held_out_shapes(db, config)
+
+    cache = Path(cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    key = json.dumps({"garment": db.garment, "vertices": db.n_vertices, **asdict(config),
+                      "clips": [Path(c).stem for c in config.clips]}, sort_keys=True, default=str)
+    stamp = cache / "testset.json"
+    if stamp.is_file() and stamp.read_text() != key:
+        raise ValueError(f"{cache}: this cache holds another test set; use another --cache or delete it.\n"
+                         f"  stored:    {stamp.read_text()}\n  requested: {key}")
+    stamp.write_text(key)
+
+    common = dict(garment=db.garment, garment_vertices=db.n_vertices, settings=config.drape)
+    warm_settings = {**config.drape, **config.warm_drape}
+    jobs = []
+    for p, pose in enumerate(poses):
+        for k, beta in enumerate(betas):
+            warm = {} if k == 0 else dict(warm_key=f"test_{p:04d}_00", warm_pose=pose, warm_beta=betas[0],
+                                          settings=warm_settings)
+            jobs.append(DrapeJob("test", p, k, pose, beta, **{**common, **warm}))
+    store = DrapeStore(cache / "drapes")
+    run_jobs(jobs, store, workers=workers, progress=progress)
+    drapes = np.stack([np.stack([store.load(f"test_{p:04d}_{k:02d}") for k in range(len(betas))])
+                       for p in range(len(poses))])
+    stats = [store.stats(job.key) for job in jobs]
+    return HeldOutSet(poses, labels, betas, shape_labels, drapes, sequence, sequence_root, stats)
