@@ -23,6 +23,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", [p for p in glob("launch/*") if os.path.isfile(p)]),
+        (f"share/{PACKAGE}/data", glob("data/*.h5")),  # the shipped garment databases
     ],
     include_package_data=True,
     python_requires=">=3.10",

@@ -15,7 +15,12 @@ from launch_ros.actions import Node
 
 
 def generate_launch_description():
-    default_params = os.path.join(get_package_share_directory("agentdress_ros"), "config", "agentdress.yaml")
+    share = get_package_share_directory("agentdress_ros")
+    default_params = os.path.join(share, "config", "agentdress.yaml")
+    # the shipped T-shirt database, when installed: the T-shirt is synthesised by the engine instead of skinned
+    database = os.path.join(share, "data", "tshirt_default.h5")
+    database_params = ({"garment_databases": [f"tshirt:{database}"], "skinned_fallback": True}
+                       if os.path.isfile(database) else {})
     params_file = LaunchConfiguration("params_file")
     return LaunchDescription(
         [
@@ -30,7 +35,7 @@ def generate_launch_description():
                 package="agentdress_ros",
                 executable="agentdress_node",
                 name="agentdress_node",
-                parameters=[params_file, {"publish_body": True}],
+                parameters=[params_file, {"publish_body": True, **database_params}],
                 output="screen",
                 emulate_tty=True,
             ),

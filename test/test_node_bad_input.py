@@ -93,11 +93,18 @@ def test_parameter_validation_reasons():
                                ("garment_vertices", ["tshirt"], "garment:value"), ("shape", [0.5] * 5, "6 values"),
                                ("shape", [0.5] * 5 + [float("nan")], "proportions"),
                                ("qos.points.reliability", "sometimes", "best_effort"), ("qos.points.depth", 0, "depth"),
-                               ("publish_body", "yes", "true or false")]:
+                               ("publish_body", "yes", "true or false"),
+                               ("engine", ["neighbors"], "field=value"), ("engine", ["speed=9"], "unknown field"),
+                               ("engine", ["neighbors=0"], "neighbors"), ("engine", ["decay=maybe"], "true or false"),
+                               ("engine", ["pose_model=neural"], "pose_model"), ("engine", ["damping=1.5"], "damping"),
+                               ("engine", ["dtype=float16"], "dtype"), ("engine", ["neighbors=2", "neighbors=3"],
+                                                                        "twice")]:
         with pytest.raises(ParameterError, match=None) as info:
             validate(name, value)
         assert words in str(info.value), (name, value, str(info.value))
     assert validate("garment_vertices", None) == {}  # an empty YAML list arrives as "not set"
+    assert validate("engine", ["pose_model=examples", "neighbors=3", "penetration=False", "components=all"]) == (
+        ("components", None), ("neighbors", 3), ("penetration", False), ("pose_model", "examples"))
     assert parse_garment_map("garment_databases", ["tshirt: a.h5", ""]) == {"tshirt": "a.h5"}
     with pytest.raises(ParameterError, match="hat"):
         check_garment_config(["tshirt", "hat"], {}, ("tshirt", "trousers"))

@@ -135,8 +135,8 @@ class AgentDressNode(Node):
 
     def _scene(self, config=None, beta=None) -> SceneSpec:
         config = config or self.config
-        garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g))
-                         for g in config["garments"])
+        garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g),
+                                     config["engine"]) for g in config["garments"])
         if beta is None:
             beta = check_shape_values(config["shape"]).beta
         return SceneSpec(garments, config["publish_body"], tuple(float(b) for b in beta), config["skinned_fallback"])
@@ -176,7 +176,8 @@ class AgentDressNode(Node):
             self._dirty = True
         if "shape" in changed:
             self._apply_shape(self.config["shape"], "shape parameter")
-        if changed & {"garments", "garment_vertices", "garment_databases", "publish_body", "skinned_fallback"}:
+        if changed & {"garments", "garment_vertices", "garment_databases", "engine", "publish_body",
+                      "skinned_fallback"}:
             scene = self._scene(beta=self.worker.wanted.beta)
             self.worker.request(garments=scene.garments, publish_body=scene.publish_body,
                                 skinned_fallback=scene.skinned_fallback)

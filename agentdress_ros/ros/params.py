@@ -8,6 +8,8 @@ Per-garment settings are string lists of "garment:value" entries, so a garment l
 parallel arrays in step:
     garment_vertices:  ["tshirt:3000", "trousers:8000"]   vertex budget (level of detail) of a skinned template
     garment_databases: ["tshirt:data/tshirt_default.h5"]  AgentDress database of a garment (else skinned)
+and the engine's speed/accuracy knobs (agentdress_ros.engine.EngineConfig) as "field=value" entries:
+    engine: ["pose_model=examples", "neighbors=3", "penetration=false"]
 """
 from __future__ import annotations
 
@@ -50,6 +52,9 @@ PARAMETERS: dict[str, Spec] = {
     "garments": Spec(["tshirt"], "garments to dress the agent in (templates tshirt, longsleeve, trousers)"),
     "garment_vertices": Spec([], "per-garment vertex budget 'name:count' of skinned templates (level of detail)"),
     "garment_databases": Spec([], "per-garment AgentDress database 'name:path.h5' (relative to the working dir)"),
+    "engine": Spec([], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
+                       "examples), neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
+                       "(float32, float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
     "skinned_fallback": Spec(False, "if a garment's database is missing or unusable, dress it with the skinned "
                                     "template (warned) instead of exiting with an error"),
     "shape": Spec([0.5, 2.0 / 3.0, 0.5, 0.5, 0.5, 0.5], "initial body shape (gender, age, muscle, weight, height, "
@@ -96,6 +101,57 @@ def parse_garment_map(name: str, value) -> dict[str, str]:
     return result
 
 
+# EngineConfig fields settable from a parameter, with their coercion (the rest are library-only).
+_ENGINE_FIELDS = {
+    "pose_model": str, "taylor": str, "dtype": str,
+    "neighbors": int, "components": int, "anchors": int,
+    "shape_model": bool, "penetration": bool, "decay": bool, "clamp_to_training_range": bool,
+    "damping": float, "penetration_margin": float, "power": float,
+}
+
+
+def _engine_value(key: str, text: str):
+    kind = _ENGINE_FIELDS[key]
+    if kind is bool:
+        if text.lower() not in ("true", "false"):
+            raise ParameterError(f"engine: {key} must be true or false, got {text!r}")
+        return text.lower() == "true"
+    if kind is str:
+        return text
+    if key in ("components", "anchors") and text.lower() in ("none", "all"):
+        return None
+    try:
+        value = kind(text)
+    except ValueError:
+        raise ParameterError(f"engine: {key}: {text!r} is not {'an integer' if kind is int else 'a number'}") from None
+    if kind is float and not math.isfinite(value):
+        raise ParameterError(f"engine: {key} must be finite, got {text!r}")
+    return value
+
+
+def parse_engine(value) -> tuple:
+    """["neighbors=3", ...] -> (("neighbors", 3), ...) sorted, checked by building an EngineConfig."""
+    from ..engine.config import EngineConfig
+
+    fields = {}
+    for entry in _string_list("engine", value):
+        key, sep, text = (part.strip() for part in entry.partition("="))
+        if not sep or not key or not text:
+            raise ParameterError(f"engine: entry {entry!r} must look like 'field=value'")
+        if key not in _ENGINE_FIELDS:
+            raise ParameterError(f"engine: unknown field {key!r}; one of {', '.join(sorted(_ENGINE_FIELDS))}")
+        if key in fields:
+            raise ParameterError(f"engine: {key} appears twice")
+        fields[key] = _engine_value(key, text)
+    if "pose_model" in fields and fields["pose_model"] not in ("lbs", "examples", "sequence"):
+        raise ParameterError(f"engine: pose_model must be lbs, examples or sequence, got {fields['pose_model']!r}")
+    try:
+        EngineConfig(**fields)
+    except (TypeError, ValueError) as error:
+        raise ParameterError(f"engine: {error}") from None
+    return tuple(sorted(fields.items()))
+
+
 def validate(name: str, value):
     """Coerce and check one parameter value; raises ParameterError with the reason."""
     if name in ("rate_hz",):
@@ -137,6 +193,8 @@ def validate(name: str, value):
         return budgets
     if name == "garment_databases":
         return parse_garment_map(name, value)
+    if name == "engine":
+        return parse_engine(value)
     if name == "shape":
         if value is None or isinstance(value, (str, bool)) or not hasattr(value, "__len__"):
             raise ParameterError(f"shape must be a list of {len(PHENOTYPE_NAMES)} numbers, got {value!r}")

@@ -22,11 +22,13 @@ __all__ = ["GarmentSpec", "ModelSet", "ModelWorker", "OutputGuard", "TickStats",
 
 @dataclass(frozen=True)
 class GarmentSpec:
-    """What to run for one garment: template name, vertex budget (None: template default), database (None: none)."""
+    """What to run for one garment: template name, vertex budget (None: template default), database (None: none),
+    engine knobs."""
 
     name: str
     vertices: int | None = None
     database: str | None = None
+    engine: tuple = ()  # EngineConfig overrides ((field, value), ...) for a garment with a database
 
 
 @dataclass(frozen=True)
@@ -58,7 +60,12 @@ def _build_garment(spec: GarmentSpec, body, beta, skinned_fallback: bool, warnin
         warnings.append(f"garment {spec.name!r}: the vertex budget {spec.vertices} applies to skinned templates; "
                         f"the database {spec.database} fixes its own vertex count")
     try:
-        return make_garment_model(spec.name, spec.database, spec.vertices, body, beta)
+        engine_config = None
+        if spec.database and spec.engine:
+            from ..engine.config import EngineConfig
+
+            engine_config = EngineConfig(**dict(spec.engine))
+        return make_garment_model(spec.name, spec.database, spec.vertices, body, beta, engine_config)
     except GarmentDatabaseError as error:
         if not skinned_fallback:
             raise
