@@ -72,7 +72,8 @@ def _build(args) -> int:
         seed=args.seed,
     )
     report = build_database(config, args.out, workers=args.workers, scheduler=args.scheduler,
-                            progress=not args.quiet)
+                            progress=not args.quiet, partial=args.partial, seed_drapes=args.seed_drapes,
+                            pack_drapes=args.pack_drapes)
     print(json.dumps({"database": str(args.out), **report}, indent=2))
     return 0
 
@@ -115,6 +116,11 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--workers", type=int, default=2, help="local worker processes (0: in this process)")
     build.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     build.add_argument("--seed", type=int, default=0)
+    build.add_argument("--partial", action="store_true", help="drape nothing: write a database now from the "
+                       "anchors whose drapes are all finished (the build continues when rerun without it)")
+    build.add_argument("--seed-drapes", default=None, help="start from the finished drapes in this pack")
+    build.add_argument("--pack-drapes", default=None, help="afterwards, pack every finished drape into this file "
+                       "(one .npz) so the build can be continued on another machine with --seed-drapes")
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     build.add_argument("--out", required=True, help="database file to write (.h5)")
     build.set_defaults(run=_build)

@@ -103,3 +103,34 @@ def test_resuming_with_other_parameters_is_refused(tiny_build, tmp_path):
     (work / "plan.pkl").write_bytes((tiny_build[0].parent / "tiny.h5.work" / "plan.pkl").read_bytes())
     with pytest.raises(ValueError, match="belongs to a build with other parameters"):
         build_database(BuildConfig(**{**TINY, "anchors": 3}), out, workers=0, progress=False)
+
+
+def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(tiny_build, tmp_path):
+    """A build continued elsewhere from a pack of its drapes fits the same database; a partial database keeps only
+    the anchors whose drapes are all there."""
+    from agentdress_ros.build.jobs import DrapeStore
+
+    reference_path, _ = tiny_build
+    work = reference_path.parent / (reference_path.name + ".work")
+    config = BuildConfig(**TINY)
+    pack = tmp_path / "drapes.npz"
+    assert DrapeStore(work / "drapes").pack(pack, config.plan_key()) == 2 * 5 + 1 + 1 + 2
+
+    out = tmp_path / "continued.h5"
+    build_database(config, out, workers=0, progress=False, command="test tiny build", seed_drapes=pack,
+                   partial=True)  # partial: nothing may be draped, everything comes from the pack
+    continued, reference = read_database(out), read_database(reference_path)
+    for field in ("anchor_poses", "pca_mean", "pca_components", "ridge", "example_drapes", "sequence_drapes"):
+        np.testing.assert_array_equal(getattr(continued, field), getattr(reference, field), err_msg=field)
+    with pytest.raises(ValueError, match="other parameters"):
+        DrapeStore(tmp_path / "other").unpack(pack, BuildConfig(**{**TINY, "seed": 1}).plan_key())
+
+    # drop one shape of anchor 1 and the last sequence frame: a partial database has anchor 0 and one frame
+    (tmp_path / "continued.h5.work" / "drapes" / "anchor_0001_03.npz").unlink()
+    (tmp_path / "continued.h5.work" / "drapes" / "sequence_0001_00.npz").unlink()
+    report = build_database(config, tmp_path / "continued.h5", workers=0, progress=False, partial=True)
+    partial = read_database(tmp_path / "continued.h5")
+    assert report["partial"] and report["anchors_fitted"] == 1 and report["anchors_planned"] == 2
+    assert partial.n_anchors == 1 and partial.sequence_drapes.shape[0] == 1
+    np.testing.assert_array_equal(partial.pca_mean[0], reference.pca_mean[0])
+    assert partial.example_drapes.shape[0] == reference.example_drapes.shape[0]  # beta0 drapes all still there

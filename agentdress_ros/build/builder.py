@@ -214,7 +214,7 @@ def run_jobs(jobs, store: DrapeStore, workers: int = 2, scheduler: str | None = 
         from dask.distributed import Client, LocalCluster, as_completed
 
         cluster = None if scheduler else LocalCluster(n_workers=max(1, workers), threads_per_worker=1,
-                                                      processes=True, dashboard_address=None,
+                                                      processes=True, dashboard_address=":0",
                                                       silence_logs=logging.WARNING)
         with Client(scheduler or cluster) as client:
             def submit(job):
@@ -231,13 +231,24 @@ def run_jobs(jobs, store: DrapeStore, workers: int = 2, scheduler: str | None = 
         raise RuntimeError(f"drapes never started: {sorted(waiting)}")
 
 
-def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyBody, command: str) -> tuple:
-    """Shape models, pose-model data and provenance from the finished drapes: (Database, report)."""
+def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyBody, command: str,
+                 partial: bool = False) -> tuple:
+    """Shape models, pose-model data and provenance from the finished drapes: (Database, report).
+
+    partial: use only the anchors whose drapes are all finished (and the examples and the leading sequence frames
+    that are), for a usable database from a build that is still running; a complete build is the same either way.
+    """
     garment = plan["garment"]
     n_anchors, n_shapes = len(plan["anchors"]), len(plan["shapes"])
+    complete = [s for s in range(n_anchors) if all(store.has(f"anchor_{s:04d}_{k:02d}") for k in range(n_shapes))]
+    if not partial and len(complete) < n_anchors:
+        missing = sorted(set(range(n_anchors)) - set(complete))
+        raise RuntimeError(f"anchors {missing} lack drapes; finish the build (or ask for a partial database)")
+    if not complete:
+        raise RuntimeError("no anchor has all its drapes yet: nothing to fit")
     means, components, ridges, ratios = [], [], [], []
     train_errors, holdout_errors = [], []
-    for s in range(n_anchors):
+    for s in complete:
         drapes = np.stack([store.load(f"anchor_{s:04d}_{k:02d}") for k in range(n_shapes)])
         model = fit_shape_model(drapes, plan["shapes"], plan["beta0"], plan["scale"], config.components)
         means.append(model.mean)
@@ -248,12 +259,23 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
         if store.has(f"holdout_{s:04d}_00"):
             truth = store.load(f"holdout_{s:04d}_00")
             holdout_errors.append(np.linalg.norm(model.predict(plan["holdout_beta"])[0] - truth, axis=1).mean())
-    example = np.stack([store.load(f"anchor_{s:04d}_00") for s in range(n_anchors)]
-                       + [store.load(f"example_{m:04d}_00") for m in range(len(plan["examples"]))])
-    sequence = [store.load(f"sequence_{t:04d}_00") for t in range(len(plan["sequence"]))]
+    # pose-model examples: every anchor's beta0 drape and the extra example poses, as far as they are draped
+    example_keys = [(pose, f"anchor_{s:04d}_00") for s, pose in enumerate(plan["anchors"])]
+    example_keys += [(pose, f"example_{m:04d}_00") for m, pose in enumerate(plan["examples"])]
+    example_keys = [(pose, key) for pose, key in example_keys if store.has(key)]
+    example = np.stack([store.load(key) for _, key in example_keys])
+    sequence = []
+    for t in range(len(plan["sequence"])):
+        if not store.has(f"sequence_{t:04d}_00"):
+            break  # only a complete prefix is a sequence
+        sequence.append(store.load(f"sequence_{t:04d}_00"))
     drape_stats = [store.stats(p.stem) for p in sorted(store.folder.glob("*.npz"))]
     report = dict(plan["report"])
     report.update(
+        partial=len(complete) < n_anchors or len(example_keys) < n_anchors + len(plan["examples"])
+        or len(sequence) < len(plan["sequence"]),
+        anchors_planned=n_anchors,
+        anchors_fitted=len(complete),
         shape_model_train_error_mm=float(np.mean(train_errors) * 1e3),
         shape_model_holdout_error_mm=float(np.mean(holdout_errors) * 1e3) if holdout_errors else None,
         holdout_beta=plan["holdout_beta"].tolist(),
@@ -281,15 +303,15 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
         beta_scale=plan["scale"],
         joint_weights=plan["dof_weights"],
         region_dof=plan["region_dof"],
-        anchor_poses=plan["anchors"],
+        anchor_poses=plan["anchors"][complete],
         training_betas=plan["shapes"],
         pca_mean=np.stack(means),
         pca_components=np.stack(components),
         ridge=np.stack(ridges),
         explained_variance_ratio=np.stack(ratios),
-        example_poses=np.concatenate([plan["anchors"], plan["examples"]]),
+        example_poses=np.stack([pose for pose, _ in example_keys]),
         example_drapes=example,
-        sequence_poses=plan["sequence"] if sequence else None,
+        sequence_poses=plan["sequence"][: len(sequence)] if sequence else None,
         sequence_root_translation=np.zeros((len(sequence), 3)) if sequence else None,
         sequence_drapes=np.stack(sequence) if sequence else None,
         sequence_fps=config.sequence_fps,
@@ -307,16 +329,27 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
 
 
 def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | None = None,
-                   progress: bool = True, command: str | None = None) -> dict:
-    """Run (or resume) a build; writes `out` and returns the report."""
+                   progress: bool = True, command: str | None = None, partial: bool = False,
+                   seed_drapes=None, pack_drapes=None) -> dict:
+    """Run (or resume) a build; writes `out` and returns the report.
+
+    partial: drape nothing, write a database from the drapes finished so far (fit_database(partial=True)).
+    seed_drapes: a pack (DrapeStore.pack) of this build's finished drapes to start from, e.g. from another machine.
+    pack_drapes: afterwards, pack every finished drape into this file, so the build can continue elsewhere.
+    """
     out = Path(out)
     work = out.with_name(out.name + ".work")
     work.mkdir(parents=True, exist_ok=True)
     body = AnnyBody()
     plan = _load_or_make_plan(config, body, work)
     store = DrapeStore(work / "drapes")
-    run_jobs(_jobs(config, plan), store, workers, scheduler, progress)
+    if seed_drapes:
+        store.unpack(seed_drapes, config.plan_key())
+    if not partial:
+        run_jobs(_jobs(config, plan), store, workers, scheduler, progress)
     command = command or "agentdress " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    db, report = fit_database(config, plan, store, body, command)
+    db, report = fit_database(config, plan, store, body, command, partial=partial)
     write_database(out, db)
+    if pack_drapes:
+        store.pack(pack_drapes, config.plan_key())
     return report

@@ -124,3 +124,37 @@ class DrapeStore:
     def stats(self, key: str) -> dict:
         with np.load(self.path(key)) as data:
             return {k[5:]: data[k].item() for k in data.files if k.startswith("stat_")}
+
+    def pack(self, path, plan_key: str) -> int:
+        """Write every finished drape (vertices and stats) into one compressed .npz, tagged with the build's plan
+        key; returns the count. A build is resumable across machines from this one file (`unpack`)."""
+        arrays = {"__plan_key__": np.array(plan_key)}
+        for file in sorted(self.folder.glob("*.npz")):
+            with np.load(file) as data:
+                for name in data.files:
+                    arrays[f"{file.stem}/{name}"] = data[name]
+        path = Path(path)
+        partial = path.with_name(path.name + ".partial")
+        with open(partial, "wb") as handle:
+            np.savez_compressed(handle, **arrays)
+        os.replace(partial, path)
+        return len(list(self.folder.glob("*.npz")))
+
+    def unpack(self, path, plan_key: str) -> int:
+        """Add the drapes of a pack that this store lacks; refuses a pack of another build. Returns the count."""
+        with np.load(path) as data:
+            if str(data["__plan_key__"]) != plan_key:
+                raise ValueError(f"{path}: these drapes belong to a build with other parameters")
+            names: dict = {}
+            for name in data.files:
+                key, _, field = name.partition("/")
+                if field:
+                    names.setdefault(key, []).append(field)
+            added = 0
+            for key, fields in names.items():
+                if self.has(key):
+                    continue
+                stats = {f[5:]: data[f"{key}/{f}"].item() for f in fields if f.startswith("stat_")}
+                self.save({"key": key, "vertices": data[f"{key}/vertices"], "stats": stats})
+                added += 1
+        return added
