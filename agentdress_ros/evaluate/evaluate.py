@@ -200,8 +200,10 @@ def stability_report(db, body, garment) -> list[dict]:
 
 
 def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: int = 2, progress: bool = True,
-             drape: dict | None = None) -> dict:
-    """Build (or reuse) the held-out set, measure every row, write report.json, trade.md and the plots."""
+             drape: dict | None = None, pack=None) -> dict:
+    """Build (or reuse) the held-out set, measure every row, write report.json, trade.md and the plots.
+
+    pack: file of the held-out ground-truth drapes, read when present and rewritten (see make_held_out_set)."""
     from ..body import AnnyBody
     from ..engine import read_database
     from ..garment import make_garment
@@ -217,7 +219,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     else:
         config = HeldOutConfig(clips=clips, drape=drape or {})
     start = time.perf_counter()
-    test = make_held_out_set(db, body, garment, config, cache, workers=workers, progress=progress)
+    test = make_held_out_set(db, body, garment, config, cache, workers=workers, progress=progress, pack=pack)
     ground_truth_seconds = time.perf_counter() - start
     inside_tests = [[InsideTest(body, beta, pose) for beta in test.betas] for pose in test.poses]
     # the same measure on the ground truth itself: what a perfect model would score
@@ -367,11 +369,14 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="one pose, two shapes, short drapes (a smoke test)")
     parser.add_argument("--workers", type=int, default=2, help="drape processes (0: in this process)")
     parser.add_argument("--drape", default="", help="JSON DrapeSettings overrides for the ground truth")
+    parser.add_argument("--ground-truth", default=None, help="pack of the held-out drapes, read when present and "
+                        "rewritten (default: <out>/ground_truth_drapes.npz; 'none' for no pack)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
+    pack = None if args.ground_truth == "none" else (args.ground_truth or Path(args.out) / "ground_truth_drapes.npz")
     report = evaluate(args.database, args.out, args.cache, clips=args.clips, quick=args.quick,
                       workers=args.workers, progress=not args.quiet,
-                      drape=json.loads(args.drape) if args.drape else None)
+                      drape=json.loads(args.drape) if args.drape else None, pack=pack)
     summary = {r["name"]: {k: round(r[k], 4) for k in ("error_mean_cm", "error_p95_cm", "ms_per_frame")}
                for r in report["rows"]}
     print(json.dumps({"out": args.out, "rows": summary, "loses_to_baseline": report["loses_to_baseline"]}, indent=2))

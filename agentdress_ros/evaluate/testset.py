@@ -107,8 +107,13 @@ def held_out_poses(body, config: HeldOutConfig):
     return np.concatenate(poses), labels, sequence[0], sequence[1]
 
 
-def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: int = 2, progress: bool = True) -> HeldOutSet:
-    """Poses, shapes and ground-truth drapes of the test set (drapes from `cache` when present, else simulated)."""
+def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: int = 2, progress: bool = True,
+                      pack=None) -> HeldOutSet:
+    """Poses, shapes and ground-truth drapes of the test set (drapes from `cache` when present, else simulated).
+
+    pack: a file of packed drapes (DrapeStore.pack) of this test set: read first when it exists, rewritten after,
+    so the ground truth can travel with the report instead of being simulated again.
+    """
     from ..build.builder import run_jobs
     from ..build.jobs import DrapeJob, DrapeStore
 
@@ -143,7 +148,12 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
                                           settings=warm_settings)
             jobs.append(DrapeJob("test", p, k, pose, beta, **{**common, **warm}))
     store = DrapeStore(cache / "drapes")
+    if pack is not None and Path(pack).is_file():
+        store.unpack(pack, key)
     run_jobs(jobs, store, workers=workers, progress=progress)
+    if pack is not None:
+        Path(pack).parent.mkdir(parents=True, exist_ok=True)
+        store.pack(pack, key)
     drapes = np.stack([np.stack([store.load(f"test_{p:04d}_{k:02d}") for k in range(len(betas))])
                        for p in range(len(poses))])
     stats = [store.stats(job.key) for job in jobs]
