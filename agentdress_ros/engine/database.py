@@ -6,6 +6,12 @@ Poses are per-bone rotation vectors (B, 3) in the body's convention (agentdress_
 anchor and example poses have a zero root rotation and translation (drapes are simulated upright).
 Drapes are garment vertex positions in world metres, posed, on the body of the stated shape.
 
+Shape basis. "absolute": each anchor's PCA models its drapes f(beta, theta_s) themselves (Eq. 5), so the regression
+(Eq. 6, additive in the phenotypes) has to carry the whole size change of the body. "skinned_residual": it models
+the drapes minus the garment fitted to that body shape (the binding below) and skinned to theta_s, i.e. only how
+the cloth hangs differently; the fitted, skinned garment (exact for any combination of phenotypes) is added back
+at run time. A held-out shape that changes four phenotypes at once is reproduced 5x better this way (README).
+
 | path | shape, dtype | meaning |
 |---|---|---|
 | attrs schema_version, garment, body_model, build_command, provenance (JSON) | | identity and how it was made |
@@ -23,6 +29,8 @@ Drapes are garment vertex positions in world metres, posed, on the body of the s
 | anchors/mean, anchors/components | (N, V, 3), (N, C, V, 3) f32 | PCA of each anchor's drapes (Eq. 5) |
 | anchors/ridge | (N, 2P+1, C) f64 | shape_features (z, z^2, 1) -> PCA coefficients (Eq. 6) |
 | anchors/explained_variance_ratio | (N, C) f64 | |
+| anchors attr shape_basis | "absolute" or "skinned_residual" | what the PCA models (below) |
+| garment/binding/triangles, .../barycentric, .../offset; attr surface | (V, 3) int32, (V, 3) f64, (V,) f64 | the garment on any body shape: a point of an hm08 triangle (vertex ids) plus an offset along the normal of the `surface` face group; required by the skinned_residual basis |
 | pose_model/examples/poses, .../drapes | (M, B, 3) f32, (M, V, 3) f32 | drapes at beta0 |
 | pose_model/sequence/poses, .../root_translation, .../drapes | (T, B, 3), (T, 3), (T, V, 3) f32; attr fps | a simulated sequence at beta0 |
 """
@@ -86,6 +94,11 @@ class Database:
     sequence_root_translation: np.ndarray | None = None
     sequence_drapes: np.ndarray | None = None
     sequence_fps: float = 30.0
+    shape_basis: str = "absolute"
+    binding_triangles: np.ndarray | None = None
+    binding_barycentric: np.ndarray | None = None
+    binding_offset: np.ndarray | None = None
+    binding_surface: str = ""
     body_model: str = "anny/cmu_mb"
     build_command: str = ""
     provenance: dict = field(default_factory=dict)
@@ -129,7 +142,11 @@ OPTIONAL_FIELDS = (
     ("pose_model/sequence/poses", "sequence_poses", np.float32, ("T", "B", 3)),
     ("pose_model/sequence/root_translation", "sequence_root_translation", np.float32, ("T", 3)),
     ("pose_model/sequence/drapes", "sequence_drapes", np.float32, ("T", "V", 3)),
+    ("garment/binding/triangles", "binding_triangles", np.int32, ("V", 3)),
+    ("garment/binding/barycentric", "binding_barycentric", np.float64, ("V", 3)),
+    ("garment/binding/offset", "binding_offset", np.float64, ("V",)),
 )
+SHAPE_BASES = ("absolute", "skinned_residual")
 STRING_FIELDS = (("body/bone_names", "bone_names"), ("body/beta_names", "beta_names"))
 
 
@@ -156,6 +173,9 @@ def write_database(path, db: Database) -> Path:
         h5["garment/regions"].attrs["region_names"] = json.dumps(list(db.region_names))
         if db.sequence_poses is not None:
             h5["pose_model/sequence"].attrs["fps"] = float(db.sequence_fps)
+        h5["anchors"].attrs["shape_basis"] = db.shape_basis
+        if db.binding_triangles is not None:
+            h5["garment/binding"].attrs["surface"] = db.binding_surface
     partial.replace(path)
     return path
 
@@ -223,4 +243,15 @@ def read_database(path) -> Database:
         )
         if "pose_model/sequence" in h5:
             extras["sequence_fps"] = float(h5["pose_model/sequence"].attrs.get("fps", 30.0))
+        basis = str(h5["anchors"].attrs.get("shape_basis", "absolute"))
+        if basis not in SHAPE_BASES:
+            raise DatabaseError(f"{path}: attribute 'anchors/shape_basis' is {basis!r}, expected one of {SHAPE_BASES}")
+        extras["shape_basis"] = basis
+        if basis == "skinned_residual":
+            for name in ("garment/binding/triangles", "garment/binding/barycentric", "garment/binding/offset"):
+                if name not in h5:
+                    raise DatabaseError(f"{path}: field '{name}' is missing (required by the skinned_residual basis)")
+            extras["binding_surface"] = str(h5["garment/binding"].attrs.get("surface", ""))
+            if not extras["binding_surface"]:
+                raise DatabaseError(f"{path}: attribute 'garment/binding/surface' is missing")
     return Database(**values, **extras)

@@ -18,9 +18,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..body import AnnyBody
-from ..body.kinematics import forward_kinematics
-from ..garment.binding import vertex_normals
+from ..body import AnnyBody, quads_to_triangles
+from ..body.kinematics import forward_kinematics, linear_blend_skinning
+from ..garment.binding import SurfaceBinding, evaluate_surface_binding, vertex_normals
 from .config import TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
 from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, region_neighbours,
@@ -88,8 +88,17 @@ def select_database(db: Database, config: EngineConfig) -> Database:
             pca_components=changes.get("pca_components", db.pca_components)[:, :, ids],
             example_drapes=db.example_drapes[:, ids],
             sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, ids],
+            **_binding_rows(db, ids),
         )
     return replace(db, **changes) if changes else db
+
+
+def _binding_rows(db: Database, ids) -> dict:
+    """The garment binding arrays (when the database has them) at vertex indices `ids`."""
+    if db.binding_triangles is None:
+        return {}
+    return dict(binding_triangles=db.binding_triangles[ids], binding_barycentric=db.binding_barycentric[ids],
+                binding_offset=db.binding_offset[ids])
 
 
 def region_blocks(regions: np.ndarray, slots: int = N_REGION_SLOTS):
@@ -128,7 +137,8 @@ def permute_vertices(db: Database, order: np.ndarray) -> Database:
         db, rest=db.rest[order], skin_indices=db.skin_indices[order], skin_weights=db.skin_weights[order],
         regions=db.regions[order], pca_mean=db.pca_mean[:, order], pca_components=db.pca_components[:, :, order],
         example_drapes=db.example_drapes[:, order],
-        sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, order])
+        sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, order],
+        **_binding_rows(db, order))
 
 
 def distance_metric(region_dof: np.ndarray, n_bones: int, eps_relative: float):
@@ -196,6 +206,18 @@ class Engine:
         _, nearest = cKDTree(self.reference.vertices[surface]).query(np.asarray(db.rest, dtype=np.float64))
         self.bound_body_vertex = surface[nearest]  # (V,) hm08 ids
 
+        # skinned_residual databases: the fitted garment skinned to every anchor at beta0 (the shape models add to it)
+        self._residual = db.shape_basis == "skinned_residual"
+        self._base0 = np.zeros((1, 1, 3))
+        if self._residual:
+            if db.binding_surface not in body.assets.group_faces:
+                raise ValueError(f"database binding surface {db.binding_surface!r} is not a face group of the body")
+            if db.binding_triangles.min() < 0 or db.binding_triangles.max() >= len(self.reference.vertices):
+                raise ValueError("database garment binding names vertices the body does not have")
+            self._binding = SurfaceBinding(db.binding_triangles, db.binding_barycentric, db.binding_offset)
+            self._surface_faces = quads_to_triangles(body.assets.group_faces[db.binding_surface])
+            self._base0 = self._skinned_at_anchors(self.reference, self._anchor_transforms(self._heads0))
+
         context = PoseModelContext(
             db=db, reference_heads=self._heads0, parents=self.parents, dtype=self.dtype, neighbours=self.neighbors,
             dofs=self.dofs, region_dof=self.q, eps=self.eps, power=float(config.power), decay=bool(config.decay),
@@ -238,6 +260,22 @@ class Engine:
         features = shape_features(beta, self.db.beta0, self.db.beta_scale)[0]
         return np.einsum("q,nqc->nc", features, self.db.ridge)
 
+    def _anchor_transforms(self, heads) -> np.ndarray:
+        """(N, B, 3, 4) skinning transforms of every anchor pose on the skeleton with rest joints `heads`."""
+        transforms = np.empty((self.db.n_anchors, self.n_bones, 3, 4))
+        for s, pose in enumerate(self.anchor_poses):
+            forward_kinematics(pose, np.zeros(3), heads, self.parents, transforms[s])
+        return transforms
+
+    def _skinned_at_anchors(self, shape, transforms) -> np.ndarray:
+        """(N, V, 3) the garment fitted to `shape` at rest (its binding) and skinned to every anchor pose."""
+        normals = vertex_normals(shape.vertices, self._surface_faces)
+        rest = evaluate_surface_binding(self._binding, shape.vertices, normals)
+        out = np.empty((len(transforms), self.n_vertices, 3))
+        for s in range(len(transforms)):
+            linear_blend_skinning(rest, self.skin_indices, self._skin_weights64, transforms[s], out[s])
+        return out
+
     def set_shape(self, beta) -> ShapeReport:
         """Re-evaluate every anchor's shape model and binding for `beta` (P,), then swap them in atomically.
 
@@ -262,9 +300,8 @@ class Engine:
         shape = self.body.shape(effective)
         heads = np.ascontiguousarray(shape.heads, dtype=np.float64)
         # new arrays only, never the live ones: a frame may be reading them while this runs in another thread
-        transforms = np.empty((db.n_anchors, self.n_bones, 3, 4))
-        for s, pose in enumerate(self.anchor_poses):
-            forward_kinematics(pose, self._zero3, heads, self.parents, transforms[s])
+        transforms = self._anchor_transforms(heads)
+        base = self._skinned_at_anchors(shape, transforms) if self._residual else self._base0
         phi = self._coefficients(effective)
         normals = vertex_normals(shape.vertices, self.body.body_faces)
         body_points = np.ascontiguousarray(shape.vertices[self.bound_body_vertex], dtype=self.dtype)
@@ -274,7 +311,8 @@ class Engine:
                       else np.zeros((1, 1), dtype=self.dtype))
         shape_anchors(phi - self._phi0, phi, db.pca_mean, db.pca_components, transforms, self.skin_indices,
                       self._skin_weights64, self.mode, config.penetration, body_points.astype(np.float64),
-                      body_normals.astype(np.float64), config.penetration_margin, deltas, clearances)
+                      body_normals.astype(np.float64), config.penetration_margin, deltas, clearances,
+                      self._residual, base, self._base0)
         self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals)
         report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start)
         self.shape_report = report

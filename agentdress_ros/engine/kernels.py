@@ -403,7 +403,8 @@ def unpose(points, skin_indices, skin_weights, transforms, out):
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def shape_anchors(delta_coefficients, coefficients, means, components, anchor_transforms, skin_indices,
-                  skin_weights, mode, penetration, body_points, body_normals, margin, deltas, clearances):
+                  skin_weights, mode, penetration, body_points, body_normals, margin, deltas, clearances,
+                  use_base, base, base0):
     """Per anchor, once per shape: the rows of `deltas` and `clearances` of the frame kernels.
 
     delta_coefficients (N, C) = phi(beta) - phi(beta0); coefficients (N, C) = phi(beta) (Eq. 6); means (N, V, 3),
@@ -411,6 +412,8 @@ def shape_anchors(delta_coefficients, coefficients, means, components, anchor_tr
     The PCA mean cancels in f(beta, theta_s) - f(beta0, theta_s). Writes deltas (N, 3, V) (see synthesize_vertices for
     the mode) and, with penetration, clearances (N, V) = min(h0, margin) with h0 the signed distance of
     f(beta, theta_s) (or f(beta0, theta_s) in ZEROTH mode) from its bound body vertex along that vertex's normal.
+    use_base (skinned_residual databases): the PCA models residuals, and f(beta, theta_s) = base[s] + mean + ...,
+    f(beta0, theta_s) = base0[s] + mean + ... with base, base0 (N, V, 3) the fitted garment skinned to theta_s.
     """
     n_anchors, n_components = delta_coefficients.shape
     n_vertices = deltas.shape[2]
@@ -436,6 +439,13 @@ def shape_anchors(delta_coefficients, coefficients, means, components, anchor_tr
                 tz += w * transforms[b, 2, 3]
             dx = dy = dz = 0.0
             fx, fy, fz = means[s, v, 0], means[s, v, 1], means[s, v, 2]
+            if use_base:
+                dx = base[s, v, 0] - base0[s, v, 0]
+                dy = base[s, v, 1] - base0[s, v, 1]
+                dz = base[s, v, 2] - base0[s, v, 2]
+                fx += base[s, v, 0]
+                fy += base[s, v, 1]
+                fz += base[s, v, 2]
             for c in range(n_components):
                 cx, cy, cz = components[s, c, v, 0], components[s, c, v, 1], components[s, c, v, 2]
                 dc = delta_coefficients[s, c]
