@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import shared_path
+from .conftest import shared_path
 
 from agentdress_ros.evaluate.evaluate import BASELINE, evaluate, trade_rows
 from agentdress_ros.evaluate.testset import HELD_OUT_CLIPS
