@@ -209,3 +209,39 @@ def test_runtime_parameters(client, node_process):
     vertices, _ = publish_pose_until_answered(client, motion.rotvecs[0], motion.root_translation[0])
     assert len(vertices["tshirt"]) == len(meshes[-1].vertices) < 1200
     assert len(vertices["trousers"]) == 1200
+
+
+def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
+    """A garment with a database is synthesised by the engine, configured by the `engine` parameter, over DDS.
+    (Decay off: the node's engine has history - the topology frame - that a fresh model lacks.)"""
+    from pathlib import Path
+
+    from agentdress_ros.engine import EngineConfig
+    from agentdress_ros.ros.garment_models import make_garment_model
+
+    database = Path(__file__).resolve().parents[1] / "data" / "tshirt_default.h5"
+    if not database.is_file():
+        pytest.skip(f"{database} is not built")
+    domain = DOMAIN_ID + 1
+    params = {"garments": ["tshirt"], "garment_databases": [f"tshirt:{database}"],
+              "engine": ["pose_model=examples", "neighbors=3", "decay=false"], "status_rate_hz": 4.0}
+    child = ChildProcess(node_args(params), ros_env(domain, str(tmp_path / "log")), tmp_path / "node.log")
+    try:
+        assert child.wait_for_output("garment models ready", timeout=90.0), child.output()
+        model = make_garment_model("tshirt", database, None, body, START_SHAPE,
+                                   EngineConfig(pose_model="examples", neighbors=3, decay=False))
+        with ros_node("agentdress_db_client", domain) as (node, executor):
+            state = {"clouds": {"tshirt": []}, "status": []}
+            node.create_subscription(PointCloud2, "/agentdress_node/tshirt/points",
+                                     lambda m: state["clouds"]["tshirt"].append(m), BEST_EFFORT)
+            node.create_subscription(String, "/agentdress_node/status",
+                                     lambda m: state["status"].append(json.loads(m.data)), 10)
+            joints = node.create_publisher(JointState, "joint_states", 10)
+            assert spin_until(executor, lambda: joints.get_subscription_count() > 0 and state["status"], 30.0)
+            assert state["status"][-1]["garments"]["tshirt"]["kind"] == "database"
+            motion = make_motion("wave", fps=30.0)
+            rotvecs, translation = motion.rotvecs[10], motion.root_translation[10]
+            vertices, _ = publish_pose_until_answered((node, executor, joints, None, state), rotvecs, translation)
+            np.testing.assert_allclose(vertices["tshirt"], model.synthesize(rotvecs, translation), atol=1e-5)
+    finally:
+        assert child.stop() == 0, child.output()

@@ -25,7 +25,7 @@ class EngineConfig:
         from a residual curve it does not print; 0.5 is our default (a ~1.4-frame time constant at the frame rate).
     dtype: "float32" (default) or "float64" for the per-frame buffers; pose and weight arithmetic is always float64.
     taylor: "augmented" = Eq. 4 (shape deltas re-posed by LBS); "plain" = Eq. 2 blended (deltas added unrotated);
-        "zeroth" = the ablation of Sec. 4.6: sum_s w^s LBS^beta_{theta_s -> theta}(f(beta0, theta_s)), no pose model,
+        "zeroth" = the ablation of Sec. 4.6: sum_s w^s LBS^beta_{theta_s -> theta}(f(beta, theta_s)), no pose model,
         no first-order term.
     power: k of W = 1 / (D + eps)^k (paper: 3). eps_relative: eps of each region as a fraction of sum_m Q_{g,m}
         (the distance of a 1 rad difference in every dof), so it is scale free.

@@ -209,6 +209,7 @@ class Engine:
         # skinned_residual databases: the fitted garment skinned to every anchor at beta0 (the shape models add to it)
         self._residual = db.shape_basis == "skinned_residual"
         self._base0 = np.zeros((1, 1, 3))
+        self._anchor_transforms0 = self._anchor_transforms(self._heads0)
         if self._residual:
             if db.binding_surface not in body.assets.group_faces:
                 raise ValueError(f"database binding surface {db.binding_surface!r} is not a face group of the body")
@@ -216,7 +217,7 @@ class Engine:
                 raise ValueError("database garment binding names vertices the body does not have")
             self._binding = SurfaceBinding(db.binding_triangles, db.binding_barycentric, db.binding_offset)
             self._surface_faces = quads_to_triangles(body.assets.group_faces[db.binding_surface])
-            self._base0 = self._skinned_at_anchors(self.reference, self._anchor_transforms(self._heads0))
+            self._base0 = self._skinned_at_anchors(self.reference, self._anchor_transforms0)
 
         context = PoseModelContext(
             db=db, reference_heads=self._heads0, parents=self.parents, dtype=self.dtype, neighbours=self.neighbors,
@@ -312,7 +313,7 @@ class Engine:
         shape_anchors(phi - self._phi0, phi, db.pca_mean, db.pca_components, transforms, self.skin_indices,
                       self._skin_weights64, self.mode, config.penetration, body_points.astype(np.float64),
                       body_normals.astype(np.float64), config.penetration_margin, deltas, clearances,
-                      self._residual, base, self._base0)
+                      self._residual, base, self._base0, self._anchor_transforms0)
         self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals)
         report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start)
         self.shape_report = report

@@ -181,11 +181,13 @@ def synthesize_vertices(zero, skin_indices, skin_weights, transforms, reference_
     Internal vertex order (see block_accumulate); out (V, 3) is in the caller's order: internal vertex v is written
     to out[order[v]]. skin_indices/skin_weights (V, I); transforms (B, 3, 4) at the query pose for the current shape
     beta; reference_translations (B, 3): the translation columns of the same pose for beta0 (rotations are shared).
-    pose_values (3, V): the pose model, canonical (rest frame, skinned here with beta0's transforms) when
-    pose_skinned, else posed world positions. blended (3, V): sum_s w^s rows_s from block_accumulate, where rows are
-    the canonical shape deltas d_s = A_s^{-1} (f(beta, theta_s) - f(beta0, theta_s)) (mode AUGMENTED), world deltas
-    (PLAIN: Eq. 2 blended, not re-posed) or canonical anchor drapes (ZEROTH: the ablation of Sec. 4.6, pose model
-    unused). With penetration, writes clearance (V,) h = signed distance along the bound body vertex's posed unit
+    pose_values (3, V): the pose model, canonical (rest frame) when pose_skinned, else posed world positions; it is
+    skinned with beta's transforms in mode AUGMENTED (beta's bone translations carry the skeleton's change of
+    proportions exactly at any pose) and with beta0's translations in mode PLAIN. blended (3, V): sum_s w^s rows_s
+    from block_accumulate, where rows are the canonical shape deltas d_s = A_s^{-1} (f(beta, theta_s) -
+    f(beta0, theta_s) - (t_s(beta) - t_s(beta0))) (mode AUGMENTED; t_s the blended bone translation), world deltas
+    (PLAIN: Eq. 2 blended, not re-posed) or canonical anchor drapes f(beta, theta_s) (ZEROTH: the ablation of
+    Sec. 4.6, pose model unused). With penetration, writes clearance (V,) h = signed distance along the bound body vertex's posed unit
     normal, and normals (3, V) that normal; body_points/body_normals (V, 3) are the bound body vertex and its unit
     normal at rest for beta, skinned with the garment vertex's own transform (the paper gives the garment vertex its
     closest body vertex's bone weights, so they share them). `zero` is 0 in the run dtype: the accumulators take its
@@ -225,10 +227,11 @@ def synthesize_vertices(zero, skin_indices, skin_weights, transforms, reference_
         else:
             cx, cy, cz = pose_values[0, v], pose_values[1, v], pose_values[2, v]
             if pose_skinned:
-                if mode == AUGMENTED:  # A c + t0 + A d = A (c + d) + t0
+                if mode == AUGMENTED:  # A c + t + A d = A (c + d) + t, with beta's translations t
                     cx += dx
                     cy += dy
                     cz += dz
+                    rx, ry, rz = tx, ty, tz
                 ox = a00 * cx + a01 * cy + a02 * cz + rx
                 oy = a10 * cx + a11 * cy + a12 * cz + ry
                 oz = a20 * cx + a21 * cy + a22 * cz + rz
@@ -236,10 +239,10 @@ def synthesize_vertices(zero, skin_indices, skin_weights, transforms, reference_
                     ox += dx
                     oy += dy
                     oz += dz
-            elif mode == AUGMENTED:
-                ox = cx + a00 * dx + a01 * dy + a02 * dz
-                oy = cy + a10 * dx + a11 * dy + a12 * dz
-                oz = cz + a20 * dx + a21 * dy + a22 * dz
+            elif mode == AUGMENTED:  # a posed beta0 drape: add the change of bone translations, beta vs beta0
+                ox = cx + a00 * dx + a01 * dy + a02 * dz + tx - rx
+                oy = cy + a10 * dx + a11 * dy + a12 * dz + ty - ry
+                oz = cz + a20 * dx + a21 * dy + a22 * dz + tz - rz
             else:
                 ox = cx + dx
                 oy = cy + dy
@@ -404,16 +407,18 @@ def unpose(points, skin_indices, skin_weights, transforms, out):
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def shape_anchors(delta_coefficients, coefficients, means, components, anchor_transforms, skin_indices,
                   skin_weights, mode, penetration, body_points, body_normals, margin, deltas, clearances,
-                  use_base, base, base0):
+                  use_base, base, base0, anchor_transforms0):
     """Per anchor, once per shape: the rows of `deltas` and `clearances` of the frame kernels.
 
     delta_coefficients (N, C) = phi(beta) - phi(beta0); coefficients (N, C) = phi(beta) (Eq. 6); means (N, V, 3),
     components (N, C', V, 3) with C' >= C (the first C are used); anchor_transforms (N, B, 3, 4) at theta_s for beta.
     The PCA mean cancels in f(beta, theta_s) - f(beta0, theta_s). Writes deltas (N, 3, V) (see synthesize_vertices for
     the mode) and, with penetration, clearances (N, V) = min(h0, margin) with h0 the signed distance of
-    f(beta, theta_s) (or f(beta0, theta_s) in ZEROTH mode) from its bound body vertex along that vertex's normal.
+    f(beta, theta_s) from its bound body vertex along that vertex's normal.
     use_base (skinned_residual databases): the PCA models residuals, and f(beta, theta_s) = base[s] + mean + ...,
     f(beta0, theta_s) = base0[s] + mean + ... with base, base0 (N, V, 3) the fitted garment skinned to theta_s.
+    anchor_transforms0 (N, B, 3, 4): the anchors' transforms for beta0; AUGMENTED deltas leave out the difference of
+    the blended bone translations (beta vs beta0) at theta_s, which the frame kernel applies exactly at theta.
     """
     n_anchors, n_components = delta_coefficients.shape
     n_vertices = deltas.shape[2]
@@ -457,11 +462,19 @@ def shape_anchors(delta_coefficients, coefficients, means, components, anchor_tr
                 fy += fc * cy
                 fz += fc * cz
             if mode == ZEROTH:
-                # the anchor drape at beta0, f(beta0, theta_s) = f(beta, theta_s) - delta, unposed with beta's bones
-                fx -= dx
-                fy -= dy
-                fz -= dz
+                # the anchor's shape model at beta, f(beta, theta_s), unposed with beta's bones
                 ux, uy, uz = fx - tx, fy - ty, fz - tz
+            elif mode == AUGMENTED:
+                # The frame kernel skins with beta's bone translations, which carry the skeleton's change of
+                # proportions exactly at every pose; the delta keeps only the rest, which rotates with the bones.
+                t0x = t0y = t0z = 0.0
+                for i in range(skin_indices.shape[1]):
+                    w = skin_weights[v, i]
+                    b = skin_indices[v, i]
+                    t0x += w * anchor_transforms0[s, b, 0, 3]
+                    t0y += w * anchor_transforms0[s, b, 1, 3]
+                    t0z += w * anchor_transforms0[s, b, 2, 3]
+                ux, uy, uz = dx - (tx - t0x), dy - (ty - t0y), dz - (tz - t0z)
             else:
                 ux, uy, uz = dx, dy, dz
             if mode != PLAIN:

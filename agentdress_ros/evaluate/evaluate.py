@@ -35,8 +35,8 @@ def trade_rows(n_anchors: int, n_components: int, quick: bool = False) -> list[R
     {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep."""
     rows = [
         Row(BASELINE, "baseline"),
-        Row("lbs pose model alone (beta0 garment, beta skeleton)", "pose model", {"shape_model": False}),
-        Row("examples pose model alone", "pose model", {"shape_model": False, "pose_model": "examples"}),
+        Row("lbs pose model alone (beta0 garment, no shape model)", "pose model", {"shape_model": False}),
+        Row("examples pose model alone (beta0 drapes, no shape model)", "pose model", {"shape_model": False, "pose_model": "examples"}),
         Row("synthesis (default: lbs pose model, K=5, all anchors, 5 components, float32)", "default", {}),
         Row("synthesis with the examples pose model", "pose model", {"pose_model": "examples"}),
     ]
@@ -52,7 +52,7 @@ def trade_rows(n_anchors: int, n_components: int, quick: bool = False) -> list[R
         Row("synthesis, penetration handling off", "refinement", {"penetration": False}),
         Row("synthesis, decay off", "refinement", {"decay": False}),
         Row("synthesis, penetration and decay off", "refinement", {"penetration": False, "decay": False}),
-        Row("ablation Sec. 4.6: no first-order term (blend of re-posed anchor drapes)", "ablation",
+        Row("ablation Sec. 4.6: no first-order term (blend of the anchors' re-posed f(beta, theta_s))", "ablation",
             {"taylor": "zeroth"}),
         Row("synthesis, plain Taylor (Eq. 2, deltas not re-posed)", "ablation", {"taylor": "plain"}),
         Row("synthesis, float64", "precision", {"dtype": "float64"}),

@@ -52,7 +52,7 @@ PARAMETERS: dict[str, Spec] = {
     "garments": Spec(["tshirt"], "garments to dress the agent in (templates tshirt, longsleeve, trousers)"),
     "garment_vertices": Spec([], "per-garment vertex budget 'name:count' of skinned templates (level of detail)"),
     "garment_databases": Spec([], "per-garment AgentDress database 'name:path.h5' (relative to the working dir)"),
-    "engine": Spec([], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
+    "engine": Spec(["pose_model=examples"], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
                        "examples), neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
                        "(float32, float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
     "skinned_fallback": Spec(False, "if a garment's database is missing or unusable, dress it with the skinned "
