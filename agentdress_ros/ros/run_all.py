@@ -75,6 +75,8 @@ def run_main(argv=None) -> int:
     except (KeyboardInterrupt, StopIteration):
         pass
     finally:
+        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):  # a second signal must not cut the cleanup short
+            signal.signal(sig, signal.SIG_IGN)
         for proc in procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)

@@ -144,6 +144,10 @@ class RosBridge:
             self.rclpy.spin(self.node)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except RuntimeError:
+            if self.rclpy.ok():
+                raise
+            # Ctrl-C shut the context down while a message was being taken: a normal stop
 
 
 def _handler(state: SceneState):
