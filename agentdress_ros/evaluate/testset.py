@@ -57,7 +57,8 @@ def _trained_phenotypes(db) -> np.ndarray:
 
 def held_out_shapes(db, config: HeldOutConfig) -> tuple[np.ndarray, list]:
     """(S, 6) shapes and their labels: uniform inside the training range, then just outside it (one trained
-    phenotype past its low or high end by `outside_margin`, cycling through the phenotypes)."""
+    phenotype past its low or high end by `outside_margin`, cycling through the phenotypes whose range leaves room
+    inside Anny's [0, 1])."""
     rng = np.random.default_rng(config.seed)
     low, high = np.asarray(db.beta_range, dtype=np.float64).T
     trained = _trained_phenotypes(db)
@@ -67,13 +68,15 @@ def held_out_shapes(db, config: HeldOutConfig) -> tuple[np.ndarray, list]:
         beta[trained] = rng.uniform(low[trained], high[trained])
         betas.append(beta)
         labels.append("inside")
-    for i in range(config.shapes_outside):
+    # only phenotypes whose training range leaves room in [0, 1] can be exceeded (gender spans all of it)
+    room = [p for p in trained if high[p] + config.outside_margin <= 1.0 or low[p] - config.outside_margin >= 0.0]
+    for i in range(config.shapes_outside if room else 0):
         beta = np.asarray(db.beta0, dtype=np.float64).copy()
         beta[trained] = rng.uniform(low[trained], high[trained])
-        p = trained[i % len(trained)]
+        p = room[i % len(room)]
         above = high[p] + config.outside_margin
         beta[p] = above if above <= 1.0 else low[p] - config.outside_margin
-        betas.append(np.clip(beta, 0.0, 1.0))
+        betas.append(beta)
         labels.append("outside")
     return np.array(betas).reshape(-1, len(db.beta0)), labels
 
@@ -132,7 +135,8 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     key = json.dumps({"garment": db.garment, "vertices": db.n_vertices, **asdict(config),
-                      "clips": [Path(c).stem for c in config.clips]}, sort_keys=True, default=str)
+                      "clips": [Path(c).stem for c in config.clips], "betas": np.round(betas, 9).tolist()},
+                     sort_keys=True, default=str)
     stamp = cache / "testset.json"
     if stamp.is_file() and stamp.read_text() != key:
         raise ValueError(f"{cache}: this cache holds another test set; use another --cache or delete it.\n"
