@@ -212,8 +212,8 @@ def test_runtime_parameters(client, node_process):
 
 
 def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
-    """A garment with a database is synthesised by the engine, configured by the `engine` parameter, over DDS.
-    (Decay off: the node's engine has history - the topology frame - that a fresh model lacks.)"""
+    """A garment with a database is synthesised by the engine, configured by the `engine` parameter, over DDS; the
+    decay off: the pose is re-sent until answered, so the node's history holds repeats a fresh model lacks."""
     from pathlib import Path
 
     from agentdress_ros.engine import EngineConfig

@@ -129,7 +129,8 @@ class DrapeStore:
         """Write every finished drape (vertices and stats) into one compressed .npz, tagged with the build's plan
         key; returns the count. A build is resumable across machines from this one file (`unpack`)."""
         arrays = {"__plan_key__": np.array(plan_key)}
-        for file in sorted(self.folder.glob("*.npz")):
+        files = sorted(self.folder.glob("*.npz"))
+        for file in files:
             with np.load(file) as data:
                 for name in data.files:
                     arrays[f"{file.stem}/{name}"] = data[name]
@@ -138,7 +139,7 @@ class DrapeStore:
         with open(partial, "wb") as handle:
             np.savez_compressed(handle, **arrays)
         os.replace(partial, path)
-        return len(list(self.folder.glob("*.npz")))
+        return len(files)
 
     def unpack(self, path, plan_key: str) -> int:
         """Add the drapes of a pack that this store lacks; refuses a pack of another build. Returns the count."""

@@ -30,7 +30,7 @@ class Row:
     results: dict = field(default_factory=dict)
 
 
-def trade_rows(n_anchors: int, n_components: int, quick: bool = False) -> list[Row]:
+def trade_rows(n_anchors: int, n_components: int) -> list[Row]:
     """The rows of the trade table (issue: K in {1, 3, 5, 8}, anchors in {8, 16, 32, all}, components in
     {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep."""
     # sweeps around the node's default (the examples pose model, the most accurate measured)
@@ -230,7 +230,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     truth_inside = float(np.mean([inside_tests[p][k].fraction(test.drapes[p, k])
                                   for p in range(len(test.poses)) for k in range(len(test.betas))]))
 
-    rows = trade_rows(db.n_anchors, db.n_components, quick)
+    rows = trade_rows(db.n_anchors, db.n_components)
     from tqdm import tqdm
 
     with threadpool_limits(limits=1):

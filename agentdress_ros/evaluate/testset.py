@@ -62,17 +62,18 @@ def held_out_shapes(db, config: HeldOutConfig) -> tuple[np.ndarray, list]:
     rng = np.random.default_rng(config.seed)
     low, high = np.asarray(db.beta_range, dtype=np.float64).T
     trained = _trained_phenotypes(db)
-    betas, labels = [], []
-    for _ in range(config.shapes_inside):
+
+    def random_inside():
         beta = np.asarray(db.beta0, dtype=np.float64).copy()
         beta[trained] = rng.uniform(low[trained], high[trained])
-        betas.append(beta)
-        labels.append("inside")
+        return beta
+
+    betas = [random_inside() for _ in range(config.shapes_inside)]
+    labels = ["inside"] * len(betas)
     # only phenotypes whose training range leaves room in [0, 1] can be exceeded (gender spans all of it)
     room = [p for p in trained if high[p] + config.outside_margin <= 1.0 or low[p] - config.outside_margin >= 0.0]
     for i in range(config.shapes_outside if room else 0):
-        beta = np.asarray(db.beta0, dtype=np.float64).copy()
-        beta[trained] = rng.uniform(low[trained], high[trained])
+        beta = random_inside()
         p = room[i % len(room)]
         above = high[p] + config.outside_margin
         beta[p] = above if above <= 1.0 else low[p] - config.outside_margin

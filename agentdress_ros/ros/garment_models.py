@@ -11,6 +11,7 @@ A `GarmentModel` turns a body shape and a pose into garment vertices:
     model.synthesize(rotvecs (B, 3), root_translation (3,)) -> (V, 3) float32
                                                      per frame; the array may be an internal buffer that the next
                                                      call overwrites (callers copy what they keep)
+    model.reset()                                    forget frame-to-frame history (the engine's decay)
     model.clone() -> GarmentModel                    a model sharing the read-only data (topology, database,
                                                      skin weights) whose set_shape does not touch `model`: the
                                                      node refits a clone off the frame path and swaps it in
@@ -58,6 +59,8 @@ class GarmentModel(Protocol):
     def set_shape(self, beta) -> bool: ...
 
     def synthesize(self, rotvecs, root_translation) -> np.ndarray: ...
+
+    def reset(self) -> None: ...
 
     def clone(self) -> "GarmentModel": ...
 
@@ -129,6 +132,9 @@ class _SkinnedBase:
         return linear_blend_skinning(self.rest, self._skin_indices, self._skin_weights,
                                      transforms.astype(np.float32), self._out)
 
+    def reset(self) -> None:
+        """LBS keeps no history."""
+
     def clone(self):
         twin = copy.copy(self)  # shares faces, skin weights, the garment template; set_shape rebinds the rest
         twin._out = np.empty_like(self._out)
@@ -183,6 +189,9 @@ class EngineGarmentModel:
 
     def synthesize(self, rotvecs, root_translation) -> np.ndarray:
         return np.asarray(self.engine.synthesize(rotvecs, root_translation), dtype=np.float32)
+
+    def reset(self) -> None:
+        self.engine.reset()
 
     def clone(self):
         twin = copy.copy(self)

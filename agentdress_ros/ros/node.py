@@ -199,6 +199,7 @@ class AgentDressNode(Node):
                 continue  # the same garment refitted to a new shape: same topology, nothing to re-send
             vertices = model.synthesize(np.zeros((self.body.n_bones, 3)), np.zeros(3))
             model_set.topology[name] = make_mesh(vertices, model.faces)
+            model.reset()  # the rest-pose frame made for the topology is not motion: no decay history from it
 
     def _on_built(self, model_set, seconds):
         for warning in model_set.warnings:

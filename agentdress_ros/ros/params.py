@@ -143,8 +143,12 @@ def parse_engine(value) -> tuple:
         if key in fields:
             raise ParameterError(f"engine: {key} appears twice")
         fields[key] = _engine_value(key, text)
-    if "pose_model" in fields and fields["pose_model"] not in ("lbs", "examples", "sequence"):
-        raise ParameterError(f"engine: pose_model must be lbs, examples or sequence, got {fields['pose_model']!r}")
+    if "pose_model" in fields:
+        from ..engine.pose_models import POSE_MODELS
+
+        if fields["pose_model"] not in POSE_MODELS:
+            raise ParameterError(f"engine: pose_model must be one of {', '.join(sorted(POSE_MODELS))}, "
+                                 f"got {fields['pose_model']!r}")
     try:
         EngineConfig(**fields)
     except (TypeError, ValueError) as error:
