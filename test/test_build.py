@@ -69,6 +69,17 @@ def test_shape_model_is_exact_on_a_quadratic_family():
     np.testing.assert_allclose(model.predict(betas), drapes, atol=1e-9)
 
 
+def test_shape_model_of_one_drape_is_that_drape():
+    """`--shapes 1` (beta0 only): one zero component, no NaN from the variance of a single sample."""
+    drape = np.random.default_rng(1).normal(size=(1, 20, 3))
+    betas = training_shapes(1)
+    with np.errstate(all="raise"):
+        model = fit_shape_model(drape, betas, betas[0], shape_scale(), n_components=5)
+    assert model.components.shape == (1, 20, 3) and model.ridge.shape[1] == 1
+    np.testing.assert_array_equal(model.explained_variance_ratio, [0.0])
+    np.testing.assert_allclose(model.predict(betas)[0], drape[0], atol=1e-12)
+
+
 def _drape_files(out: Path):
     return sorted((out.parent / (out.name + ".work") / "drapes").glob("*.npz"))
 

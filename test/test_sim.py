@@ -109,6 +109,38 @@ def test_drape_is_deterministic_on_cpu(scene, draped):
     assert np.array_equal(again.vertices, draped.vertices)
 
 
+@pytest.fixture(scope="module")
+def trousers(body):
+    """A ~600-vertex pair of trousers on the reference body at rest: (garment, rest, warm start, body, faces)."""
+    from agentdress_ros.garment import make_garment
+    from agentdress_ros.garment.dressing import Dressing
+
+    garment = make_garment("trousers", body, n_vertices=600)
+    dressing = Dressing(body, [garment], dtype=np.float64)
+    dressing.pose(np.zeros((body.n_bones, 3)))
+    return (garment, dressing.garment_rest[0].copy(), dressing.garment_vertices[0].copy(),
+            dressing.body_vertices.copy(), dressing.body_faces)
+
+
+@needs_newton
+def test_a_pinned_waistband_holds_trousers_up(trousers):
+    """Friction 0.3 cannot hold loose trousers on the hips; the waistband (pinned at its skinned place) does."""
+    from agentdress_ros.sim import drape
+
+    garment, rest, warm, body_vertices, body_faces = trousers
+    assert 10 <= len(garment.pinned) < garment.n_vertices // 5
+    # the band is the top of the trousers
+    assert warm[garment.pinned, 2].min() > np.percentile(warm[:, 2], 80)
+    settings = DrapeSettings(max_frames=120)
+    held = drape(warm, garment.faces, body_vertices, body_faces, settings, rest_vertices=rest, pinned=garment.pinned)
+    loose = drape(warm, garment.faces, body_vertices, body_faces, settings, rest_vertices=rest)
+    np.testing.assert_allclose(held.vertices[garment.pinned], warm[garment.pinned], atol=1e-6)  # float32 state
+    drop_held = warm[:, 2].mean() - held.vertices[:, 2].mean()
+    drop_loose = warm[:, 2].mean() - loose.vertices[:, 2].mean()
+    assert held.converged and held.inside_count == 0
+    assert drop_held < 0.03 and drop_loose > drop_held + 0.01, (drop_held, drop_loose)
+
+
 def test_bad_inputs_are_rejected_before_simulating():
     from agentdress_ros.sim import drape
 
@@ -117,3 +149,5 @@ def test_bad_inputs_are_rejected_before_simulating():
         drape(vertices, np.array([[0, 1, 5]]), vertices, np.array([[0, 1, 2]]))
     with pytest.raises(ValueError):
         drape(np.full((3, 3), np.nan), np.array([[0, 1, 2]]), vertices, np.array([[0, 1, 2]]))
+    with pytest.raises(ValueError, match="pinned"):
+        drape(vertices, np.array([[0, 1, 2]]), vertices, np.array([[0, 1, 2]]), pinned=[3])

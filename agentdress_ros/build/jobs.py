@@ -89,7 +89,8 @@ def run_drape_job(job: DrapeJob, warm_drape: np.ndarray | None = None) -> dict:
             raise ValueError(f"job {job.key} starts from drape {job.warm_key}, which was not given")
         source_skinned = posed_scene(body, garment, job.warm_beta, job.warm_pose)[1]
         warm = transferred_warm_start(warm, warm_drape, source_skinned)
-    result = drape(warm, garment.faces, body_vertices, body_faces, DrapeSettings(**job.settings), rest_vertices=rest)
+    result = drape(warm, garment.faces, body_vertices, body_faces, DrapeSettings(**job.settings), rest_vertices=rest,
+                   pinned=garment.pinned)
     stats = {k: v for k, v in asdict(result).items() if k != "vertices" and np.isscalar(v)}
     return {"key": job.key, "vertices": np.asarray(result.vertices, dtype=np.float64), "stats": stats}
 

@@ -32,17 +32,19 @@ def fit_shape_model(drapes, betas, beta0, beta_scale, n_components: int = 5, alp
     k, v, _ = drapes.shape
     n_components = min(n_components, k)
     flat = drapes.reshape(k, -1)
-    pca = PCA(n_components=n_components, svd_solver="full").fit(flat)
+    with np.errstate(divide="ignore", invalid="ignore"):  # one drape: sklearn's variance divides by k - 1 = 0
+        pca = PCA(n_components=n_components, svd_solver="full").fit(flat)
     coefficients = pca.transform(flat)
     # The constant feature is in the design matrix, so the ridge's own intercept is off (it would go unpenalised
     # and double-count); the paper's W multiplies (beta, beta^2, 1) directly.
     ridge = Ridge(alpha=alpha, fit_intercept=False).fit(shape_features(betas, beta0, beta_scale), coefficients)
     ratio = np.zeros(n_components)
-    ratio[: len(pca.explained_variance_ratio_)] = pca.explained_variance_ratio_
+    # one drape has no variance: its single component is zero and explains nothing
+    ratio[: len(pca.explained_variance_ratio_)] = np.nan_to_num(pca.explained_variance_ratio_) if k > 1 else 0.0
     return ShapeModel(
         mean=pca.mean_.reshape(v, 3),
         components=pca.components_.reshape(n_components, v, 3),
-        ridge=ridge.coef_.T.copy(),
+        ridge=ridge.coef_.reshape(coefficients.shape[1], -1).T.copy(),  # sklearn drops the axis of one target
         explained_variance_ratio=ratio,
         beta0=np.asarray(beta0, dtype=np.float64),
         beta_scale=np.asarray(beta_scale, dtype=np.float64),

@@ -1,7 +1,7 @@
 """A garment: topology, how it follows the body shape, its skin weights and bone regions."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,6 +24,7 @@ class Garment:
     skin_indices: np.ndarray  # (V, 4) int32
     skin_weights: np.ndarray  # (V, 4) float64, rows sum to 1
     regions: np.ndarray  # (V, 7) region weights w_{g,y}
+    pinned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (P,) held by a drape
 
     @property
     def n_vertices(self) -> int:

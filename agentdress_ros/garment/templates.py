@@ -57,6 +57,13 @@ def _crew_neck(v: np.ndarray, neck: np.ndarray) -> np.ndarray:
     return np.minimum(1.0 - radial, v[:, 2] - collar)
 
 
+# Trousers: the waist opening sits this far above the lower back joint; the band below it, this deep, is what a
+# drape holds at its skinned place (an elastic waistband or belt - friction 0.3 lets unheld trousers slide ~11 cm
+# down the hips).
+WAIST_ABOVE_LOWER_BACK = 0.02
+WAISTBAND_DEPTH = 0.03
+
+
 def garment_field(name: str, body: AnnyBody, shape) -> np.ndarray:
     """The cutting field (N,) of template `name` on the hm08 vertices of `shape` at rest; keep where <= 0."""
     v = shape.vertices
@@ -66,7 +73,7 @@ def garment_field(name: str, body: AnnyBody, shape) -> np.ndarray:
     on_arm = on_left_arm | on_right_arm
     z = v[:, 2]
     if name == "trousers":
-        waist = z - (joint["LowerBack"][2] + 0.02)
+        waist = z - (joint["LowerBack"][2] + WAIST_ABOVE_LOWER_BACK)
         ankle = min(joint["LeftFoot"][2], joint["RightFoot"][2]) + 0.05
         field = np.where(legs >= 0.5, np.maximum(waist, ankle - z), waist)
         return np.where(on_arm, 1.0, field)
@@ -115,8 +122,13 @@ def make_garment(name: str, body: AnnyBody | None = None, n_vertices: int | None
     skin_indices, skin_weights = interpolate_skin_weights(
         binding.triangles, binding.barycentric, body.assets.skin_indices, body.assets.skin_weights, body.n_bones
     )
+    pinned = np.zeros(0, dtype=np.int64)
+    if name == "trousers":
+        waist = shape.heads[body.bone_names.index("LowerBack")][2] + WAIST_ABOVE_LOWER_BACK
+        pinned = np.flatnonzero(vertices[:, 2] >= waist - WAISTBAND_DEPTH)
     return Garment(
         name=name,
+        pinned=pinned,
         faces=faces.astype(np.int32),
         binding=binding,
         surface="body",

@@ -257,13 +257,14 @@ def _check_mesh(name: str, vertices, faces=None) -> tuple[np.ndarray, np.ndarray
 
 
 def drape(garment_vertices, garment_faces, body_vertices, body_faces, settings: DrapeSettings | None = None,
-          rest_vertices=None) -> DrapeResult:
+          rest_vertices=None, pinned=None) -> DrapeResult:
     """Drape a garment on a static body to quasi-static equilibrium; see the module docstring.
 
     garment_vertices (V, 3) the warm start (the garment skinned to the pose), garment_faces (F, 3),
     body_vertices (N, 3) and body_faces (G, 3) the posed body's closed surface (outward normals),
-    rest_vertices (V, 3) the cloth's undeformed shape (default: the warm start). Raises RuntimeError if the
-    simulation produces non-finite positions.
+    rest_vertices (V, 3) the cloth's undeformed shape (default: the warm start), pinned (P,) indices of garment
+    vertices held at their warm-start positions (a waistband: friction alone cannot hold trousers on the hips).
+    Raises RuntimeError if the simulation produces non-finite positions.
     """
     settings = DrapeSettings() if settings is None else settings
     s = settings
@@ -275,6 +276,9 @@ def drape(garment_vertices, garment_faces, body_vertices, body_faces, settings: 
     body, body_tris = _check_mesh("body", body_vertices, body_faces)
     if s.substeps < 1 or s.iterations < 1 or s.collide_every < 1 or s.max_frames < 1:
         raise ValueError("substeps, iterations, collide_every and max_frames must be >= 1")
+    pinned = np.unique(np.asarray([] if pinned is None else pinned, dtype=np.int64))
+    if len(pinned) and (pinned[0] < 0 or pinned[-1] >= len(warm)):
+        raise ValueError(f"pinned vertex indices must lie in 0..{len(warm) - 1}")
     wp, newton = require_newton()
     start_vertices, pushed_out = push_out_of_body(warm, body, body_tris, s.particle_radius + s.body_margin)
 
@@ -304,6 +308,10 @@ def drape(garment_vertices, garment_faces, body_vertices, body_faces, settings: 
         model.soft_contact_ke = s.contact_stiffness
         model.soft_contact_kd = s.contact_damping
         model.soft_contact_mu = s.friction
+        if len(pinned):  # kinematic vertices: the solver leaves inactive particles where they are
+            flags = model.particle_flags.numpy()
+            flags[pinned] &= ~np.asarray(newton.ParticleFlags.ACTIVE, dtype=flags.dtype)
+            model.particle_flags = wp.array(flags, dtype=model.particle_flags.dtype, device=device)
 
         pipeline = newton.CollisionPipeline(
             model, soft_contact_gap=s.contact_gap,
