@@ -17,10 +17,10 @@ from launch_ros.actions import Node
 def generate_launch_description():
     share = get_package_share_directory("agentdress_ros")
     default_params = os.path.join(share, "config", "agentdress.yaml")
-    # the shipped T-shirt database, when installed: the T-shirt is synthesised by the engine instead of skinned
-    database = os.path.join(share, "data", "tshirt_default.h5")
-    database_params = ({"garment_databases": [f"tshirt:{database}"], "skinned_fallback": True}
-                       if os.path.isfile(database) else {})
+    # the shipped garment databases, when installed: those garments are synthesised by the engine instead of skinned
+    databases = [f"{g}:{os.path.join(share, 'data', g + '_default.h5')}" for g in ("tshirt", "trousers")
+                 if os.path.isfile(os.path.join(share, "data", g + "_default.h5"))]
+    database_params = {"garment_databases": databases, "skinned_fallback": True} if databases else {}
     params_file = LaunchConfiguration("params_file")
     return LaunchDescription(
         [

@@ -1,8 +1,8 @@
 """`make run`: the node, the demo driver and the web viewer as three processes on the default configuration.
 
-The T-shirt comes from the database `data/tshirt_default.h5` when that file exists (with skinned_fallback on, so a
-database the engine cannot load yet still gives a dressed agent, with a warning); otherwise both garments are the
-skinned templates. Prints the viewer's URL; Ctrl-C (or any process exiting) stops all three.
+Each garment comes from its shipped database `data/<garment>_default.h5` when that file exists (with
+skinned_fallback on, so a database the engine cannot load yet still gives a dressed agent, with a warning); otherwise
+it is the skinned template. Prints the viewer's URL; Ctrl-C (or any process exiting) stops all three.
 """
 from __future__ import annotations
 
@@ -15,15 +15,19 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_DATABASE = Path("data/tshirt_default.h5")
+GARMENTS = ("tshirt", "trousers")
+DATA = Path("data")
 
 
-def node_command(params_file: Path, database: Path | None, extra=()) -> list[str]:
-    """The node's command line: the YAML config plus the run's overrides (body on for the viewer)."""
+def node_command(params_file: Path, databases: dict, extra=()) -> list[str]:
+    """The node's command line: the YAML config plus the run's overrides (body on for the viewer).
+
+    databases: {garment: database path} of the garments the engine synthesises (the others are skinned)."""
     cmd = [sys.executable, "-m", "agentdress_ros.ros.node", "--ros-args", "--params-file", str(params_file),
-           "-p", "garments:=['tshirt','trousers']", "-p", "publish_body:=true"]
-    if database is not None:
-        cmd += ["-p", f"garment_databases:=['tshirt:{database}']", "-p", "skinned_fallback:=true"]
+           "-p", f"garments:={list(GARMENTS)}", "-p", "publish_body:=true"]
+    if databases:
+        entries = [f"{g}:{path}" for g, path in databases.items()]
+        cmd += ["-p", f"garment_databases:={entries}", "-p", "skinned_fallback:=true"]
     return cmd + list(extra)
 
 
@@ -33,16 +37,18 @@ def run_main(argv=None) -> int:
     parser.add_argument("--port", type=int, default=8765, help="viewer HTTP port")
     parser.add_argument("--shape-sweep", type=float, default=20.0, help="shape sweep period in s (0: off)")
     parser.add_argument("--config", default=str(ROOT / "config" / "agentdress.yaml"), help="node parameter file")
-    parser.add_argument("--database", default=str(DEFAULT_DATABASE), help="T-shirt database if the file exists")
+    parser.add_argument("--data", default=str(DATA), help="folder of the <garment>_default.h5 databases to use")
     args = parser.parse_args(argv)
 
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # a one-machine demo: no multicast on the LAN
-    database = Path(args.database).resolve() if Path(args.database).is_file() else None
-    print(f"agentdress run: T-shirt from {'database ' + str(database) if database else 'the skinned template'}"
-          f"{'' if database else f' ({args.database} not found)'}, trousers skinned", flush=True)
+    found = {g: Path(args.data, f"{g}_default.h5").resolve() for g in GARMENTS}
+    databases = {g: path for g, path in found.items() if path.is_file()}
+    for g, path in found.items():
+        print(f"agentdress run: {g} from {'database ' + str(path) if g in databases else 'the skinned template'}"
+              f"{'' if g in databases else f' ({path} not found)'}", flush=True)
     commands = {
-        "node": node_command(Path(args.config), database),
+        "node": node_command(Path(args.config), databases),
         "demo": [sys.executable, "-m", "agentdress_ros.ros.demo", "--motion", args.motion,
                  "--shape-sweep", str(args.shape_sweep)],
         "viewer": [sys.executable, "-m", "agentdress_ros.ros.viewer", "--port", str(args.port)],
