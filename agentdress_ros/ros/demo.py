@@ -75,12 +75,12 @@ def demo_main(argv=None) -> int:
     """`agentdress demo [--motion walk|clip.bvh] [--rate 60] [--shape-sweep 20] [--duration 0] ...` (ROS args
     after --ros-args are passed to rclpy). Returns the exit status."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float32MultiArray
 
     from ..motion.joint_names import JOINT_NAMES
+    from .spin import spin_until_shutdown
 
     argv = list(sys.argv[1:] if argv is None else argv)
     ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
@@ -124,11 +124,9 @@ def demo_main(argv=None) -> int:
           flush=True)
     code = 0
     try:
-        rclpy.spin(node)
+        spin_until_shutdown(lambda: rclpy.spin(node))
     except SystemExit as done:
         code = int(done.code or 0)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
     finally:
         node.destroy_node()
         if rclpy.ok():

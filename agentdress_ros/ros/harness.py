@@ -62,7 +62,8 @@ class ChildProcess:
         return self.proc.pid
 
     def output(self, tail: int = 4000) -> str:
-        self._log.flush()
+        if not self._log.closed:  # after stop() the file is complete on disk
+            self._log.flush()
         return self.log_path.read_text(errors="replace")[-tail:]
 
     def wait_for_output(self, text: str, timeout: float) -> bool:

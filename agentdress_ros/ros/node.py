@@ -28,7 +28,7 @@ import time
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
@@ -42,6 +42,7 @@ from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .messages import make_marker, make_mesh, make_point_cloud, set_cloud_vertices, stamp_from_ns
 from .params import PARAMETERS, ParameterError, check_garment_config, database_file_problem, validate
 from .runtime import GarmentSpec, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set
+from .spin import spin_until_shutdown
 
 NODE_NAME = "agentdress_node"
 TOPOLOGY_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
@@ -399,10 +400,7 @@ def main(args=None) -> int:
             return 2
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        try:
-            executor.spin()
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
+        spin_until_shutdown(executor.spin)
         return 0
     finally:
         if node is not None:

@@ -138,16 +138,9 @@ class RosBridge:
             self.node.create_subscription(PointCloud2, f"{self.prefix}/{name}/points", on_points, self.points_qos)
 
     def spin(self):
-        from rclpy.executors import ExternalShutdownException
+        from .spin import spin_until_shutdown
 
-        try:
-            self.rclpy.spin(self.node)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        except RuntimeError:
-            if self.rclpy.ok():
-                raise
-            # Ctrl-C shut the context down while a message was being taken: a normal stop
+        spin_until_shutdown(lambda: self.rclpy.spin(self.node))
 
 
 def _handler(state: SceneState):

@@ -1,0 +1,23 @@
+"""Spin until Ctrl-C or SIGTERM, for the node, the demo driver and the viewer: every way rclpy reports a stop is a
+normal stop (exit status 0)."""
+from __future__ import annotations
+
+
+def spin_until_shutdown(spin) -> None:
+    """Call `spin()` (an executor's or rclpy's spin) and return when a signal stops it.
+
+    rclpy's signal handler shuts the context down; depending on where the executor is at that moment, spin raises
+    KeyboardInterrupt, ExternalShutdownException, or - between two waits, or while a message is taken - an
+    RCLError (a RuntimeError) about the invalid context. Any other error, or one while the context is still valid,
+    propagates.
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    try:
+        spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RuntimeError:
+        if rclpy.ok():
+            raise
