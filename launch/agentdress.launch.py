@@ -3,6 +3,7 @@ install: `ros2 launch agentdress_ros agentdress.launch.py [motion:=wave] [demo:=
 The viewer prints the URL to open. The PyPI wheels used in a plain venv ship no `launch`; there, `make run` starts the
 same three processes (agentdress_ros/ros/run_all.py), or run `agentdress_node --ros-args --params-file
 config/agentdress.yaml` directly."""
+import glob
 import os
 import sys
 
@@ -18,8 +19,8 @@ def generate_launch_description():
     share = get_package_share_directory("agentdress_ros")
     default_params = os.path.join(share, "config", "agentdress.yaml")
     # the shipped garment databases, when installed: those garments are synthesised by the engine instead of skinned
-    databases = [f"{g}:{os.path.join(share, 'data', g + '_default.h5')}" for g in ("tshirt", "trousers")
-                 if os.path.isfile(os.path.join(share, "data", g + "_default.h5"))]
+    databases = [f"{os.path.basename(path)[: -len('_default.h5')]}:{path}"
+                 for path in sorted(glob.glob(os.path.join(share, "data", "*_default.h5")))]
     database_params = {"garment_databases": databases, "skinned_fallback": True} if databases else {}
     params_file = LaunchConfiguration("params_file")
     return LaunchDescription(

@@ -1,6 +1,5 @@
 """The shipped garment databases (data/<garment>_default.h5): complete, small, reproducible from their recorded
 build command and drape pack, and the engine reproduces their newton drapes at the anchor poses."""
-import json
 import shlex
 from pathlib import Path
 

@@ -40,7 +40,7 @@ def fit_shape_model(drapes, betas, beta0, beta_scale, n_components: int = 5, alp
     ridge = Ridge(alpha=alpha, fit_intercept=False).fit(shape_features(betas, beta0, beta_scale), coefficients)
     ratio = np.zeros(n_components)
     # one drape has no variance: its single component is zero and explains nothing
-    ratio[: len(pca.explained_variance_ratio_)] = np.nan_to_num(pca.explained_variance_ratio_) if k > 1 else 0.0
+    ratio[: len(pca.explained_variance_ratio_)] = pca.explained_variance_ratio_ if k > 1 else 0.0
     return ShapeModel(
         mean=pca.mean_.reshape(v, 3),
         components=pca.components_.reshape(n_components, v, 3),

@@ -64,6 +64,11 @@ WAIST_ABOVE_LOWER_BACK = 0.02
 WAISTBAND_DEPTH = 0.03
 
 
+def _waist_height(body: AnnyBody, shape) -> float:
+    """Height [m] of the trousers' waist opening on `shape` at rest."""
+    return float(shape.heads[body.bone_names.index("LowerBack")][2]) + WAIST_ABOVE_LOWER_BACK
+
+
 def garment_field(name: str, body: AnnyBody, shape) -> np.ndarray:
     """The cutting field (N,) of template `name` on the hm08 vertices of `shape` at rest; keep where <= 0."""
     v = shape.vertices
@@ -73,7 +78,7 @@ def garment_field(name: str, body: AnnyBody, shape) -> np.ndarray:
     on_arm = on_left_arm | on_right_arm
     z = v[:, 2]
     if name == "trousers":
-        waist = z - (joint["LowerBack"][2] + WAIST_ABOVE_LOWER_BACK)
+        waist = z - _waist_height(body, shape)
         ankle = min(joint["LeftFoot"][2], joint["RightFoot"][2]) + 0.05
         field = np.where(legs >= 0.5, np.maximum(waist, ankle - z), waist)
         return np.where(on_arm, 1.0, field)
@@ -124,8 +129,7 @@ def make_garment(name: str, body: AnnyBody | None = None, n_vertices: int | None
     )
     pinned = np.zeros(0, dtype=np.int64)
     if name == "trousers":
-        waist = shape.heads[body.bone_names.index("LowerBack")][2] + WAIST_ABOVE_LOWER_BACK
-        pinned = np.flatnonzero(vertices[:, 2] >= waist - WAISTBAND_DEPTH)
+        pinned = np.flatnonzero(vertices[:, 2] >= _waist_height(body, shape) - WAISTBAND_DEPTH)
     return Garment(
         name=name,
         pinned=pinned,
