@@ -212,3 +212,26 @@ def test_load_engine_from_file(db, body, tmp_path):
                   ).max() < 1e-6
     with pytest.raises(DatabaseError, match="not found"):
         load_engine(tmp_path / "missing.h5", body=body)
+
+
+def test_anchor_subset_restricts_the_examples_and_the_pose_model_keeps_its_own_k(db, body):
+    """N anchors keep only those anchors' beta0 drapes as pose-model examples (matched by pose, as a build stores
+    them), and the pose model's K (pose_neighbors) does not follow the anchors' K."""
+    from dataclasses import replace
+
+    extra = len(db.example_poses)
+    anchor_drapes = np.stack([shape_model(db, s, db.beta0) for s in range(db.n_anchors)]).astype(np.float32)
+    built = replace(db, example_poses=np.concatenate([db.anchor_poses, db.example_poses]),
+                    example_drapes=np.concatenate([anchor_drapes, db.example_drapes]))
+    engine = Engine(built, body, EngineConfig(pose_model="examples", anchors=[1, 3], neighbors=1, pose_neighbors=2))
+    np.testing.assert_array_equal(engine.db.example_poses, db.anchor_poses[[1, 3]])
+    assert engine.db.n_anchors == 2 and len(engine.pose_model.canonical) == 2
+    assert engine.selected.shape == (7, 1) and engine.pose_model.selected.shape == (7, 2)
+    full = Engine(built, body, EngineConfig(pose_model="examples", neighbors=2, pose_neighbors=4))
+    assert len(full.pose_model.canonical) == db.n_anchors + extra
+    assert full.selected.shape == (7, 2) and full.pose_model.selected.shape == (7, 4)
+    with pytest.raises(ValueError, match="pose_neighbors"):
+        EngineConfig(pose_neighbors=0)
+    # a database without anchor drapes among its examples cannot run the examples pose model on an anchor subset
+    with pytest.raises(ValueError, match="has none"):
+        Engine(db, body, EngineConfig(pose_model="examples", anchors=2))

@@ -11,11 +11,14 @@ class EngineConfig:
     """Runtime knobs. Defaults are the paper's method (Eq. 4, 7-10) at full accuracy in float32.
 
     pose_model: registered pose model name ("lbs", "examples", "sequence"; see engine.pose_models).
-    neighbors: K anchors kept per region (paper: 5). Fewer is faster per vertex, blends less.
+    neighbors: K anchors kept per region (paper: 5) for the shape models. Fewer is faster per vertex, blends less.
+    pose_neighbors: K examples blended per region by the examples pose model (its own knob: the anchors' K does
+        not change it); capped at the number of examples.
     components: PCA components of the shape models used (paper: 5; None = all the database holds, which may be
         more so that the trade can be measured). Only costs at a shape change.
     anchors: subset of anchors: None = all, an int n = n evenly spaced anchors, or a sequence of anchor indices.
-        Fewer anchors: smaller memory and faster shape changes, coarser pose coverage.
+        Fewer anchors: smaller memory and faster shape changes, coarser pose coverage. A subset also restricts the
+        pose model's examples to those anchors' beta0 drapes (the extra examples of the database are dropped).
     vertices: garment level of detail, optional: None = all, or a sequence of vertex indices; the engine then
         outputs only those vertices (in that order) and `Engine.faces` keeps the triangles whose corners all survive.
     shape_model: False = the pose model alone, f(beta0, theta) skinned onto the current skeleton: no anchor blend,
@@ -36,6 +39,7 @@ class EngineConfig:
 
     pose_model: str = "lbs"
     neighbors: int = 5
+    pose_neighbors: int = 5
     components: int | None = 5
     anchors: object = None
     vertices: object = None
@@ -60,6 +64,8 @@ class EngineConfig:
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if int(self.neighbors) < 1:
             raise ValueError(f"neighbors must be >= 1, got {self.neighbors}")
+        if int(self.pose_neighbors) < 1:
+            raise ValueError(f"pose_neighbors must be >= 1, got {self.pose_neighbors}")
         if not 0.0 <= float(self.damping) < 1.0:
             raise ValueError(f"damping (eta) must lie in [0, 1), got {self.damping}")
         if self.components is not None and int(self.components) < 1:

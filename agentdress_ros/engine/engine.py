@@ -64,9 +64,11 @@ def select_database(db: Database, config: EngineConfig) -> Database:
             keep = np.asarray(config.anchors, dtype=int).reshape(-1)
             if keep.size == 0 or keep.min() < -db.n_anchors or keep.max() >= db.n_anchors:
                 raise ValueError(f"anchors subset must index 0..{db.n_anchors - 1}")
+        examples = anchor_examples(db, keep)
         changes.update(anchor_poses=db.anchor_poses[keep], pca_mean=db.pca_mean[keep],
                        pca_components=db.pca_components[keep], ridge=db.ridge[keep],
-                       explained_variance_ratio=db.explained_variance_ratio[keep])
+                       explained_variance_ratio=db.explained_variance_ratio[keep],
+                       example_poses=db.example_poses[examples], example_drapes=db.example_drapes[examples])
     if config.components is not None and config.components < db.n_components:
         c = int(config.components)
         changes.update(pca_components=changes.get("pca_components", db.pca_components)[:, :c],
@@ -86,11 +88,24 @@ def select_database(db: Database, config: EngineConfig) -> Database:
             regions=db.regions[ids],
             pca_mean=changes.get("pca_mean", db.pca_mean)[:, ids],
             pca_components=changes.get("pca_components", db.pca_components)[:, :, ids],
-            example_drapes=db.example_drapes[:, ids],
+            example_drapes=changes.get("example_drapes", db.example_drapes)[:, ids],
             sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, ids],
             **_binding_rows(db, ids),
         )
     return replace(db, **changes) if changes else db
+
+
+def anchor_examples(db: Database, keep) -> np.ndarray:
+    """Indices of the pose-model examples that are the beta0 drapes of anchors `keep` (an example whose pose equals
+    the anchor's), in anchor order: an anchor subset restricts the pose model to its own anchors' drapes, as the
+    paper builds its pose model at its sample points. Anchors without such an example (synthetic databases) add
+    none."""
+    examples = np.asarray(db.example_poses, dtype=np.float64).reshape(len(db.example_poses), -1)
+    found = []
+    for pose in np.asarray(db.anchor_poses, dtype=np.float64)[keep].reshape(len(keep), -1):
+        same = np.flatnonzero(np.abs(examples - pose).max(axis=1) <= 1e-6)
+        found += same[:1].tolist()
+    return np.asarray(found, dtype=int)
 
 
 def _binding_rows(db: Database, ids) -> dict:
@@ -196,7 +211,7 @@ class Engine:
         self.dofs, self.q, self.eps = distance_metric(db.region_dof, self.n_bones, config.eps_relative)
         self.anchor_poses = canonical_poses(db.anchor_poses)
         self.features = np.ascontiguousarray(self.anchor_poses.reshape(db.n_anchors, -1)[:, self.dofs])
-        self.neighbors = min(int(config.neighbors), db.n_anchors)
+        self.neighbors = min(int(config.neighbors), db.n_anchors)  # anchors blended per region (shape models)
 
         # beta0: reference skeleton, shape-model coefficients, penetration binding (closest body vertex at rest)
         self.reference = body.shape(db.beta0)
@@ -220,10 +235,10 @@ class Engine:
             self._base0 = self._skinned_at_anchors(self.reference, self._anchor_transforms0)
 
         context = PoseModelContext(
-            db=db, reference_heads=self._heads0, parents=self.parents, dtype=self.dtype, neighbours=self.neighbors,
-            dofs=self.dofs, region_dof=self.q, eps=self.eps, power=float(config.power), decay=bool(config.decay),
-            damping=float(config.damping), block_start=self.block_start, block_regions=self.block_regions,
-            region_w=self.region_w)
+            db=db, reference_heads=self._heads0, parents=self.parents, dtype=self.dtype,
+            neighbours=int(config.pose_neighbors), dofs=self.dofs, region_dof=self.q, eps=self.eps,
+            power=float(config.power), decay=bool(config.decay), damping=float(config.damping),
+            block_start=self.block_start, block_regions=self.block_regions, region_w=self.region_w)
         self.pose_model = make_pose_model(config.pose_model, context)
 
         # frame buffers, allocated once

@@ -41,7 +41,7 @@ class PoseModelContext:
     reference_heads: np.ndarray  # (B, 3) beta0 rest joint positions
     parents: np.ndarray  # (B,) int64
     dtype: type
-    neighbours: int
+    neighbours: int  # K of the examples pose model (EngineConfig.pose_neighbors)
     dofs: np.ndarray  # (Da,) active pose dofs of the sensitivity distance
     region_dof: np.ndarray  # (R, Da) float64 Q_{g,m}, degenerate regions already replaced
     eps: np.ndarray  # (R,)
@@ -107,6 +107,9 @@ class ExamplePoseModel:
 
     def __init__(self, context: PoseModelContext):
         db = context.db
+        if len(db.example_poses) == 0:
+            raise ValueError("pose model 'examples' needs pose-model examples; the database (or its anchor subset) "
+                             "has none")
         poses = canonical_poses(db.example_poses)
         skin_w = np.ascontiguousarray(db.skin_weights, dtype=np.float64)
         n_examples, n_vertices = db.example_drapes.shape[:2]

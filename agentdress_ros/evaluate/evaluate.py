@@ -3,8 +3,10 @@
 For every configuration (a row of the trade table) and in one run: the mean and 95th-percentile vertex error (cm)
 against the held-out drapes (evaluate.testset), the fraction of garment vertices inside the body, the milliseconds
 per frame on a held-out motion (one thread, median), and the temporal jitter on that motion (mean vertex
-acceleration, mm per frame^2). Writes report.json, trade.md and PNG plots (Pareto front, error vs anchors as in
-the paper's Fig. 9, error vs distance of the shape from beta0) and a stability report of extreme inputs through
+acceleration, mm per frame^2). Each mean error comes with a 95 % bootstrap interval over the test cases (the
+(pose, shape) pairs resampled, the same resamples for every row); rows whose intervals overlap are
+indistinguishable on this test set. Writes report.json, trade.md and PNG plots (Pareto front, error vs anchors as
+in the paper's Fig. 9, error vs distance of the shape from beta0) and a stability report of extreme inputs through
 the full pipeline. Rows that lose to the skinned baseline are listed, not hidden.
 """
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 BASELINE = "skinned template fitted to beta (no database)"
+BOOTSTRAP_DRAWS = 4000
 
 
 @dataclass
@@ -31,8 +34,10 @@ class Row:
 
 
 def trade_rows(n_anchors: int, n_components: int) -> list[Row]:
-    """The rows of the trade table (issue: K in {1, 3, 5, 8}, anchors in {8, 16, 32, all}, components in
-    {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep."""
+    """The rows of the trade table (the anchors' K and the examples pose model's K in {1, 3, 5, 8}, components in
+    {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep: N
+    anchors restrict both the shape models and the pose model's examples to those anchors (their beta0 drapes),
+    the pose model's K staying 5 (capped at N)."""
     # sweeps around the node's default (the examples pose model, the most accurate measured)
     base = {"pose_model": "examples"}
     rows = [
@@ -40,14 +45,17 @@ def trade_rows(n_anchors: int, n_components: int) -> list[Row]:
         Row("lbs pose model alone (beta0 garment, no shape model)", "pose model", {"shape_model": False}),
         Row("examples pose model alone (beta0 drapes, no shape model)", "pose model",
             {"shape_model": False, **base}),
-        Row("synthesis (node default: examples pose model, K=5, all anchors, 5 components, float32)", "default",
-            dict(base)),
+        Row("synthesis (node default: examples pose model, K=5 anchors and K=5 examples per region, all anchors "
+            "and examples, 5 components, float32)", "default", dict(base)),
         Row("synthesis with the lbs pose model (library default)", "pose model", {}),
     ]
-    rows += [Row(f"synthesis K={k}", "neighbors", {**base, "neighbors": k}) for k in (1, 3, 8)]
-    for count in (1, 2, 4, 8, 16, 32):
-        if count < n_anchors:
-            rows.append(Row(f"synthesis, {count} anchors", "anchors", {**base, "anchors": count}))
+    rows += [Row(f"synthesis, anchors' K={k}", "neighbors", {**base, "neighbors": k}) for k in (1, 3, 8)]
+    rows += [Row(f"synthesis, pose model's K={k}", "pose neighbors", {**base, "pose_neighbors": k})
+             for k in (1, 3, 8)]
+    for count in sorted({c for c in (1, 2, 4, 8, 16, 32) if c < n_anchors} | {n_anchors}):
+        rows.append(Row(f"synthesis, {count} anchor{'s' if count > 1 else ''} (shape models and pose-model "
+                        "examples)", "anchors",
+                        {**base, "anchors": count}))
     for c in (2, 10):
         if c < n_components or (c > 5 and n_components > 5):
             rows.append(Row(f"synthesis, {min(c, n_components)} PCA components", "components",
@@ -107,7 +115,8 @@ class InsideTest:
 
 
 def accuracy(model, test, inside_tests) -> dict:
-    """Errors of a model on every (pose, shape) of the test set: cm mean / p95, inside fraction, per shape."""
+    """Errors of a model on every (pose, shape) of the test set: cm mean / p95, inside fraction, per shape, and
+    the mean of each case (shape-major: case k * poses + p), which the bootstrap resamples."""
     errors, inside, per_shape = [], [], []
     for k, beta in enumerate(test.betas):
         model.set_shape(beta)
@@ -120,9 +129,32 @@ def accuracy(model, test, inside_tests) -> dict:
             shape_errors.append(error.mean())
             inside.append(inside_tests[p][k].fraction(out))
         per_shape.append(float(np.mean(shape_errors) * 100.0))
+    cases = [float(e.mean() * 100.0) for e in errors]
     errors = np.concatenate(errors)
     return {"error_mean_cm": float(errors.mean() * 100.0), "error_p95_cm": float(np.percentile(errors, 95) * 100.0),
-            "inside_fraction": float(np.mean(inside)), "error_per_shape_cm": per_shape}
+            "inside_fraction": float(np.mean(inside)), "error_per_shape_cm": per_shape, "error_per_case_cm": cases}
+
+
+def bootstrap_intervals(case_errors, draws: int = BOOTSTRAP_DRAWS, seed: int = 0, reference: int | None = None):
+    """95 % percentile-bootstrap intervals of the mean error of each row, resampling the test cases.
+
+    case_errors (rows, cases): each row's mean error per (pose, shape) case (every case has the same vertices, so
+    their mean is the row's mean error). The same resampled case sets serve every row. Returns (intervals
+    (rows, 2), differences (rows, 2)): the latter is the interval of each row's mean minus the `reference` row's
+    on the same resamples (a paired comparison; None: no differences)."""
+    case_errors = np.asarray(case_errors, dtype=np.float64)
+    n_cases = case_errors.shape[1]
+    picks = np.random.default_rng(seed).integers(0, n_cases, size=(draws, n_cases))
+    means = case_errors[:, picks].mean(axis=2)  # (rows, draws)
+    intervals = np.percentile(means, [2.5, 97.5], axis=1).T
+    if reference is None:
+        return intervals, None
+    return intervals, np.percentile(means - means[reference], [2.5, 97.5], axis=1).T
+
+
+def overlaps(a, b) -> bool:
+    """Whether two intervals [low, high] overlap."""
+    return bool(a[0] <= b[1] and b[0] <= a[1])
 
 
 def speed_and_jitter(model, test, beta, repeats: int = 3) -> dict:
@@ -231,19 +263,28 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
                                   for p in range(len(test.poses)) for k in range(len(test.betas))]))
 
     rows = trade_rows(db.n_anchors, db.n_components)
+    repeats = 1 if quick else 3
     from tqdm import tqdm
 
     with threadpool_limits(limits=1):
         for row in tqdm(rows, desc="configurations", disable=not progress):
             model = _model(row, db, body, garment)
             row.results = accuracy(model, test, inside_tests)
-            row.results.update(speed_and_jitter(model, test, test.betas[0], repeats=1 if quick else 3))
+            row.results.update(speed_and_jitter(model, test, test.betas[0], repeats=repeats))
         stability = stability_report(db, body, garment)
 
     baseline = rows[0].results
-    for row in rows:
-        row.results["beats_baseline"] = bool(row.results["error_mean_cm"] < baseline["error_mean_cm"])
+    default = next(i for i, r in enumerate(rows) if r.group == "default")
+    intervals, differences = bootstrap_intervals([r.results["error_per_case_cm"] for r in rows], reference=default)
+    for row, interval, difference in zip(rows, intervals, differences):
+        row.results["error_mean_ci_cm"] = interval.tolist()
+        row.results["error_vs_default_ci_cm"] = difference.tolist()
+        # better or worse than the baseline only when the intervals do not overlap
+        row.results["beats_baseline"] = bool(interval[1] < intervals[0][0])
+        row.results["vs_baseline"] = ("better" if row.results["beats_baseline"] else
+                                      "worse" if interval[0] > intervals[0][1] else "indistinguishable")
         row.results["error_vs_baseline"] = row.results["error_mean_cm"] / baseline["error_mean_cm"]
+    best = int(np.argmin([r.results["error_mean_cm"] for r in rows]))
     z = (test.betas - np.asarray(db.beta0)) / np.asarray(db.beta_scale)
     report = {
         "database": str(db_path),
@@ -260,7 +301,15 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
                      "ground_truth_inside_fraction": truth_inside,
                      "ground_truth_seconds_this_run": ground_truth_seconds},
         "rows": [{"name": r.name, "group": r.group, "config": r.config, **r.results} for r in rows],
-        "loses_to_baseline": [r.name for r in rows[1:] if not r.results["beats_baseline"]],
+        "timing": {"frames": int(len(test.sequence)), "passes": repeats,
+                   "statistic": "best of the per-pass medians of ms per frame, one thread, this run only"},
+        "bootstrap": {"draws": BOOTSTRAP_DRAWS, "cases": len(test.poses) * len(test.betas), "level": 0.95,
+                      "resampled": "(pose, shape) cases, with replacement"},
+        "lowest_mean_error": rows[best].name,
+        "indistinguishable_from_lowest": [r.name for r in rows
+                                          if overlaps(r.results["error_mean_ci_cm"], intervals[best])],
+        "loses_to_baseline": [r.name for r in rows[1:] if r.results["vs_baseline"] == "worse"],
+        "indistinguishable_from_baseline": [r.name for r in rows[1:] if r.results["vs_baseline"] == "indistinguishable"],
         "stability": stability,
     }
     out_dir = Path(out_dir)
@@ -272,12 +321,14 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
 
 
 def trade_markdown(report: dict) -> str:
-    lines = ["| # | configuration | mean error (cm) | p95 error (cm) | vs baseline | inside body | ms / frame | "
-             "jitter (mm/frame^2) |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| # | configuration | mean error (cm) | 95 % interval | minus node default (paired 95 % interval) | "
+             "p95 error (cm) | vs baseline | inside body | ms / frame | jitter (mm/frame^2) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for i, r in enumerate(report["rows"], start=1):
-        lines.append(f"| {i} | {r['name']} | {r['error_mean_cm']:.2f} | {r['error_p95_cm']:.2f} | "
-                     f"{r['error_vs_baseline']:.2f}x | {100 * r['inside_fraction']:.2f} % | {r['ms_per_frame']:.3f} | "
-                     f"{r['jitter_mm']:.2f} |")
+        (low, high), (d_low, d_high) = r["error_mean_ci_cm"], r["error_vs_default_ci_cm"]
+        lines.append(f"| {i} | {r['name']} | {r['error_mean_cm']:.2f} | {low:.2f}-{high:.2f} | "
+                     f"{d_low:+.2f} to {d_high:+.2f} | {r['error_p95_cm']:.2f} | {r['error_vs_baseline']:.2f}x | "
+                     f"{100 * r['inside_fraction']:.2f} % | {r['ms_per_frame']:.3f} | {r['jitter_mm']:.2f} |")
     lines += ["", "| extreme input (full pipeline) | max distance from skinned (cm) | non-finite | rejected frames |",
               "|---|---|---|---|"]
     for s in report["stability"]:
@@ -287,9 +338,19 @@ def trade_markdown(report: dict) -> str:
     lines += ["", f"Ground truth: {truth['drapes']} newton drapes of {len(truth['poses'])} held-out poses x "
               f"{len(truth['betas'])} shapes; {100 * truth['ground_truth_inside_fraction']:.2f} % of their vertices "
               "inside the body by the same nearest-vertex test."]
-    losers = report["loses_to_baseline"]
-    lines += ["", "Configurations with a larger mean error than the skinned baseline: "
-              + (", ".join(losers) if losers else "none") + "."]
+    timing, boot = report["timing"], report["bootstrap"]
+    lines += ["", f"ms / frame: the best of {timing['passes']} per-pass medians over the {timing['frames']}-frame "
+              "held-out motion, one thread, every row in the same run: compare rows by their ratio, not with "
+              "another run's numbers."]
+    lines += ["", f"Intervals: {boot['draws']} bootstrap resamples of the {boot['cases']} {boot['resampled']}, "
+              "the same resamples for every row. Lowest mean error: " + report["lowest_mean_error"]
+              + "; indistinguishable from it (intervals overlap): "
+              + ", ".join(n for n in report["indistinguishable_from_lowest"] if n != report["lowest_mean_error"])
+              + "."]
+    for key, what in (("loses_to_baseline", "worse than the skinned baseline (intervals apart)"),
+                      ("indistinguishable_from_baseline", "indistinguishable from the skinned baseline")):
+        names = report[key]
+        lines += ["", f"Configurations {what}: " + (", ".join(names) if names else "none") + "."]
     return "\n".join(lines) + "\n"
 
 
@@ -300,6 +361,12 @@ def _save(fig, path: Path) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def _error_bars(rows) -> np.ndarray:
+    """(2, n) distances from each row's mean error down and up to its interval's ends (matplotlib's yerr)."""
+    return np.array([[r["error_mean_cm"] - r["error_mean_ci_cm"][0], r["error_mean_ci_cm"][1] - r["error_mean_cm"]]
+                     for r in rows]).T
 
 
 def write_plots(report: dict, out_dir: Path) -> list[Path]:
@@ -318,6 +385,8 @@ def write_plots(report: dict, out_dir: Path) -> list[Path]:
         error = min(r["error_mean_cm"], top)
         ax.scatter(r["ms_per_frame"], error, marker="^" if error < r["error_mean_cm"] else marker,
                    s=70 if marker != "o" else 25, label=r["name"][:40] if marker != "o" else None)
+        if error == r["error_mean_cm"]:
+            ax.errorbar(r["ms_per_frame"], error, yerr=_error_bars([r]), fmt="none", ecolor="0.6", lw=0.8, capsize=2)
         ax.annotate(str(i) if error == r["error_mean_cm"] else f"{i} ({r['error_mean_cm']:.0f} cm)",
                     (r["ms_per_frame"], error), fontsize=7, xytext=(3, -9 if error < r["error_mean_cm"] else 3),
                     textcoords="offset points")
@@ -335,15 +404,17 @@ def write_plots(report: dict, out_dir: Path) -> list[Path]:
     ax.legend(fontsize=7)
     paths.append(_save(fig, out_dir / "pareto.png"))
 
-    # error vs number of anchors (Fig. 9)
-    sweep = [(report["database_anchors"], next(r for r in rows if r["group"] == "default"))]
-    sweep += [(r["config"]["anchors"], r) for r in rows if r["group"] == "anchors"]
-    sweep.sort(key=lambda x: x[0])
+    # error vs number of anchors (Fig. 9): shape models and pose-model examples both restricted to N anchors
+    sweep = sorted((r["config"]["anchors"], r) for r in rows if r["group"] == "anchors")
     fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot([n for n, _ in sweep], [r["error_mean_cm"] for _, r in sweep], "o-", label="synthesis")
-    ax.axhline(rows[0]["error_mean_cm"], color="gray", ls="--", label="skinned baseline")
+    counts = [n for n, _ in sweep]
+    ax.errorbar(counts, [r["error_mean_cm"] for _, r in sweep], yerr=_error_bars([r for _, r in sweep]), fmt="o-",
+                capsize=3, label="synthesis (examples pose model on the same anchors)")
+    baseline = rows[0]
+    ax.axhline(baseline["error_mean_cm"], color="gray", ls="--", label="skinned baseline (95 % interval shaded)")
+    ax.axhspan(*baseline["error_mean_ci_cm"], color="gray", alpha=0.15)
     ax.set_xscale("log", base=2)
-    ax.set_xlabel("anchors used")
+    ax.set_xlabel("anchors used (error bars: 95 % bootstrap interval)")
     ax.set_ylabel("mean vertex error (cm)")
     ax.set_title("Error vs number of anchors (cf. AgentDress Fig. 9)")
     ax.legend()
@@ -371,7 +442,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="agentdress eval", description=__doc__.split("\n")[0])
     parser.add_argument("--database", default="data/tshirt_default.h5")
     parser.add_argument("--out", default="docs/eval", help="folder for report.json, trade.md and the plots")
-    parser.add_argument("--cache", default="out/eval-cache", help="ground-truth drapes of the held-out set")
+    parser.add_argument("--cache", default=None, help="ground-truth drapes of the held-out set (default: "
+                        "out/eval-cache/<database file name without .h5>)")
     parser.add_argument("--clips", nargs="*", default=None, help="held-out CMU .bvh clips (default: "
                         "../shared/mocap/cmu/{02_01,07_12,05_12,06_14,09_01}.bvh)")
     parser.add_argument("--quick", action="store_true", help="one pose, two shapes, short drapes (a smoke test)")
@@ -382,10 +454,12 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     pack = None if args.ground_truth == "none" else (args.ground_truth or Path(args.out) / "ground_truth_drapes.npz")
-    report = evaluate(args.database, args.out, args.cache, clips=args.clips, quick=args.quick,
+    cache = args.cache or Path("out/eval-cache") / Path(args.database).stem
+    report = evaluate(args.database, args.out, cache, clips=args.clips, quick=args.quick,
                       workers=args.workers, progress=not args.quiet,
                       drape=json.loads(args.drape) if args.drape else None, pack=pack)
-    summary = {r["name"]: {k: round(r[k], 4) for k in ("error_mean_cm", "error_p95_cm", "ms_per_frame")}
+    summary = {r["name"]: {**{k: round(r[k], 4) for k in ("error_mean_cm", "error_p95_cm", "ms_per_frame")},
+                           "error_mean_ci_cm": [round(x, 4) for x in r["error_mean_ci_cm"]]}
                for r in report["rows"]}
     print(json.dumps({"out": args.out, "rows": summary, "loses_to_baseline": report["loses_to_baseline"]}, indent=2))
     return 0
