@@ -116,38 +116,50 @@ class Database:
         return self.pca_components.shape[1]
 
 
-# (h5 path, Database attribute, dtype, shape spec). Letters in the spec must agree across fields.
+# (h5 path, Database attribute, dtype, shape spec, (low, high)). Letters in the spec must agree across fields. The
+# range is inclusive; None leaves a side open; a letter as the upper bound means an index below that size.
+COORDINATE = 100.0  # metres: garment and drape coordinates, the shape models' means
+ANGLE = 4 * np.pi  # radians: a rotation-vector component
+POSES = (-ANGLE, ANGLE)
+POINTS = (-COORDINATE, COORDINATE)
 FIELDS = (
-    ("garment/faces", "faces", np.int32, ("F", 3)),
-    ("garment/rest", "rest", np.float32, ("V", 3)),
-    ("garment/skin_indices", "skin_indices", np.int32, ("V", N_INFLUENCES)),
-    ("garment/skin_weights", "skin_weights", np.float32, ("V", N_INFLUENCES)),
-    ("garment/regions", "regions", np.float32, ("V", N_REGIONS)),
-    ("body/parents", "parents", np.int32, ("B",)),
-    ("body/beta0", "beta0", np.float64, ("P",)),
-    ("body/beta_range", "beta_range", np.float64, ("P", 2)),
-    ("body/beta_scale", "beta_scale", np.float64, ("P",)),
-    ("sensitivity/joint_weights", "joint_weights", np.float32, ("D",)),
-    ("sensitivity/region_dof", "region_dof", np.float32, (N_REGIONS, "D")),
-    ("anchors/poses", "anchor_poses", np.float32, ("N", "B", 3)),
-    ("anchors/training_betas", "training_betas", np.float64, ("K", "P")),
-    ("anchors/mean", "pca_mean", np.float32, ("N", "V", 3)),
-    ("anchors/components", "pca_components", np.float32, ("N", "C", "V", 3)),
-    ("anchors/ridge", "ridge", np.float64, ("N", "Q", "C")),
-    ("anchors/explained_variance_ratio", "explained_variance_ratio", np.float64, ("N", "C")),
-    ("pose_model/examples/poses", "example_poses", np.float32, ("M", "B", 3)),
-    ("pose_model/examples/drapes", "example_drapes", np.float32, ("M", "V", 3)),
+    ("garment/faces", "faces", np.int32, ("F", 3), (0, "V")),
+    ("garment/rest", "rest", np.float32, ("V", 3), POINTS),
+    ("garment/skin_indices", "skin_indices", np.int32, ("V", N_INFLUENCES), (0, "B")),
+    ("garment/skin_weights", "skin_weights", np.float32, ("V", N_INFLUENCES), (0.0, 1.0)),
+    ("garment/regions", "regions", np.float32, ("V", N_REGIONS), (0.0, 1.0)),
+    ("body/parents", "parents", np.int32, ("B",), (-1, "B")),
+    ("body/beta0", "beta0", np.float64, ("P",), (0.0, 1.0)),
+    ("body/beta_range", "beta_range", np.float64, ("P", 2), (0.0, 1.0)),
+    ("body/beta_scale", "beta_scale", np.float64, ("P",), (0.0, 1.0e3)),
+    ("sensitivity/joint_weights", "joint_weights", np.float32, ("D",), (0.0, None)),
+    ("sensitivity/region_dof", "region_dof", np.float32, (N_REGIONS, "D"), (0.0, None)),
+    ("anchors/poses", "anchor_poses", np.float32, ("N", "B", 3), POSES),
+    ("anchors/training_betas", "training_betas", np.float64, ("K", "P"), (0.0, 1.0)),
+    ("anchors/mean", "pca_mean", np.float32, ("N", "V", 3), POINTS),
+    ("anchors/components", "pca_components", np.float32, ("N", "C", "V", 3), (-1.001, 1.001)),  # unit vectors
+    ("anchors/ridge", "ridge", np.float64, ("N", "Q", "C"), (-1.0e6, 1.0e6)),
+    ("anchors/explained_variance_ratio", "explained_variance_ratio", np.float64, ("N", "C"), (0.0, 1.0 + 1e-6)),
+    ("pose_model/examples/poses", "example_poses", np.float32, ("M", "B", 3), POSES),
+    ("pose_model/examples/drapes", "example_drapes", np.float32, ("M", "V", 3), POINTS),
 )
 OPTIONAL_FIELDS = (
-    ("pose_model/sequence/poses", "sequence_poses", np.float32, ("T", "B", 3)),
-    ("pose_model/sequence/root_translation", "sequence_root_translation", np.float32, ("T", 3)),
-    ("pose_model/sequence/drapes", "sequence_drapes", np.float32, ("T", "V", 3)),
-    ("garment/binding/triangles", "binding_triangles", np.int32, ("V", 3)),
-    ("garment/binding/barycentric", "binding_barycentric", np.float64, ("V", 3)),
-    ("garment/binding/offset", "binding_offset", np.float64, ("V",)),
+    ("pose_model/sequence/poses", "sequence_poses", np.float32, ("T", "B", 3), POSES),
+    ("pose_model/sequence/root_translation", "sequence_root_translation", np.float32, ("T", 3), (-1.0e4, 1.0e4)),
+    ("pose_model/sequence/drapes", "sequence_drapes", np.float32, ("T", "V", 3), POINTS),
+    ("garment/binding/triangles", "binding_triangles", np.int32, ("V", 3), (0, None)),  # the engine checks the body's
+    ("garment/binding/barycentric", "binding_barycentric", np.float64, ("V", 3), (-1e-6, 1.0 + 1e-6)),
+    ("garment/binding/offset", "binding_offset", np.float64, ("V",), (-1.0, 1.0)),
 )
 SHAPE_BASES = ("absolute", "skinned_residual")
-STRING_FIELDS = (("body/bone_names", "bone_names"), ("body/beta_names", "beta_names"))
+STRING_FIELDS = (("body/bone_names", "bone_names", "B"), ("body/beta_names", "beta_names", "P"))
+#: The most bytes one dataset may take in memory, and all of them together: a file that declares more (a corrupt
+#: or hostile header) is refused before anything is read. The largest database measured (12k vertices, 150
+#: anchors, 10 components) holds 216 MB in its largest dataset.
+MAX_DATASET_BYTES = 2**30
+MAX_TOTAL_BYTES = 4 * 2**30
+MAX_NAMES = 4096  # entries of a string dataset
+SUM_TOLERANCE = 1e-3  # rows of skin weights and barycentric coordinates sum to 1 within this
 
 
 def write_database(path, db: Database) -> Path:
@@ -160,7 +172,7 @@ def write_database(path, db: Database) -> Path:
         h5.attrs["body_model"] = db.body_model
         h5.attrs["build_command"] = db.build_command
         h5.attrs["provenance"] = json.dumps(db.provenance)
-        for name, attr, dtype, _ in FIELDS + OPTIONAL_FIELDS:
+        for name, attr, dtype, _, _ in FIELDS + OPTIONAL_FIELDS:
             value = getattr(db, attr)
             if value is None:
                 continue
@@ -168,7 +180,7 @@ def write_database(path, db: Database) -> Path:
             big = array.size > 4096
             h5.create_dataset(name, data=array, compression="gzip" if big else None, compression_opts=4 if big else None,
                               shuffle=big)
-        for name, attr in STRING_FIELDS:
+        for name, attr, _ in STRING_FIELDS:
             h5.create_dataset(name, data=np.array(getattr(db, attr), dtype=h5py.string_dtype()))
         h5["garment/regions"].attrs["region_names"] = json.dumps(list(db.region_names))
         if db.sequence_poses is not None:
@@ -180,78 +192,272 @@ def write_database(path, db: Database) -> Path:
     return path
 
 
-def _check_shape(path, name, array, spec, sizes):
-    if array.ndim != len(spec):
-        raise DatabaseError(f"{path}: field '{name}' has {array.ndim} dimensions, expected {len(spec)} {spec}")
-    for axis, (want, got) in enumerate(zip(spec, array.shape)):
-        if isinstance(want, int):
-            if got != want:
-                raise DatabaseError(f"{path}: field '{name}' axis {axis} has size {got}, expected {want}")
-        elif sizes.setdefault(want, got) != got:
-            raise DatabaseError(f"{path}: field '{name}' axis {axis} ({want}) has size {got}, but other fields "
-                                f"say {want} = {sizes[want]}")
+def _shown(value):
+    """An attribute's value as Python shows it (a numpy scalar as its plain number)."""
+    return value.item() if isinstance(value, np.generic) else value
 
 
-def read_database(path) -> Database:
-    """Load and validate a database; raises DatabaseError naming the file and the offending field."""
+class _Reader:
+    """One validating read of an open database file. Every check fails with a DatabaseError naming the file, the
+    field (or attribute) and what is wrong; `where` names what is being read when h5py itself fails."""
+
+    def __init__(self, path: Path, h5, max_dataset_bytes: int):
+        self.path, self.h5, self.max_dataset_bytes = path, h5, max_dataset_bytes
+        self.where = "the file"
+        self.sizes: dict = {}  # letter -> (size, field that set it)
+        self.total_bytes = 0
+
+    def fail(self, what: str):
+        raise DatabaseError(f"{self.path}: {self.where} {what}")
+
+    # ---------------------------------------------------------------- datasets
+    def dataset(self, name: str, required: bool = True):
+        self.where = f"field '{name}'"
+        obj = self.h5.get(name)
+        if obj is None:
+            if required:
+                raise DatabaseError(f"{self.path}: required field '{name}' is missing")
+            return None
+        if not isinstance(obj, h5py.Dataset):
+            self.fail("is a group, not a dataset")
+        return obj
+
+    def reserve(self, shape, itemsize: int):
+        """Refuse a dataset whose declared size passes the caps, before reading any of it."""
+        nbytes = int(np.prod(shape, dtype=object)) * itemsize
+        if nbytes > self.max_dataset_bytes:
+            self.fail(f"declares shape {tuple(shape)} ({nbytes / 2**20:.0f} MiB), more than the "
+                      f"{self.max_dataset_bytes / 2**20:.0f} MiB one dataset may hold")
+        self.total_bytes += nbytes
+        if self.total_bytes > MAX_TOTAL_BYTES:
+            self.fail(f"brings the database past {MAX_TOTAL_BYTES / 2**30:.0f} GiB")
+
+    def check_shape(self, name: str, shape, spec):
+        if len(shape) != len(spec):
+            self.fail(f"has {len(shape)} dimensions {tuple(shape)}, expected {len(spec)} {spec}")
+        for axis, (want, got) in enumerate(zip(spec, shape)):
+            if isinstance(want, int):
+                if got != want:
+                    self.fail(f"axis {axis} has size {got}, expected {want}")
+            elif got == 0:
+                self.fail(f"axis {axis} ({want}) is empty")
+            else:
+                size, owner = self.sizes.setdefault(want, (got, name))
+                if size != got:
+                    self.fail(f"axis {axis} ({want}) has size {got}, but field '{owner}' says {want} = {size}")
+
+    def numeric(self, name: str, dtype, spec, required: bool = True):
+        """The dataset in its stored dtype, checked for kind, shape, size and finiteness (ranges come later)."""
+        obj = self.dataset(name, required)
+        if obj is None:
+            return None
+        integer = np.dtype(dtype).kind == "i"
+        if obj.dtype.kind not in ("iu" if integer else "f"):
+            self.fail(f"has dtype {obj.dtype}, expected {'integers' if integer else 'floating-point numbers'} "
+                      f"({np.dtype(dtype).name})")
+        if len(obj.shape) != len(spec):
+            self.check_shape(name, obj.shape, spec)
+        self.reserve(obj.shape, max(obj.dtype.itemsize, np.dtype(dtype).itemsize))
+        self.check_shape(name, obj.shape, spec)
+        array = obj[()]
+        if not integer and not np.isfinite(array).all():
+            self.fail(f"contains non-finite values (NaN or Inf) at index {self.first(~np.isfinite(array))}")
+        return array
+
+    @staticmethod
+    def first(mask) -> tuple:
+        return tuple(int(i) for i in np.unravel_index(int(np.argmax(mask)), mask.shape))
+
+    def check_range(self, name: str, array, bounds, dtype):
+        self.where = f"field '{name}'"
+        low, high = bounds
+        if isinstance(high, str):  # an index into something of that size
+            high = self.sizes[high][0] - 1
+        if np.dtype(dtype).kind == "i":  # whatever the bounds, nothing a cast to dtype would wrap around
+            limits = np.iinfo(dtype)
+            low, high = max(limits.min, low), limits.max if high is None else min(limits.max, high)
+        lowest, highest = array.min().item(), array.max().item()
+        if (low is not None and lowest < low) or (high is not None and highest > high):
+            outside = np.zeros(array.shape, dtype=bool)
+            if low is not None and lowest < low:
+                outside |= array < low
+            if high is not None and highest > high:
+                outside |= array > high
+            index = self.first(outside)
+            self.fail(f"has values outside [{'-inf' if low is None else low}, {'inf' if high is None else high}]: "
+                      f"{array[index]} at index {index}")
+
+    def cast(self, array, dtype):
+        with np.errstate(over="ignore"):  # reported below, naming the field
+            out = np.ascontiguousarray(array, dtype=dtype)
+        if out.dtype.kind == "f" and not np.isfinite(out).all():
+            self.fail(f"has values beyond the {np.dtype(dtype).name} range at index {self.first(~np.isfinite(out))}")
+        return out
+
+    def names(self, name: str, letter: str) -> tuple:
+        obj = self.dataset(name)
+        if obj.dtype.kind not in "OSU" or (obj.dtype.kind == "O" and h5py.check_string_dtype(obj.dtype) is None):
+            self.fail(f"has dtype {obj.dtype}, expected strings")
+        if len(obj.shape) != 1 or not 0 < obj.shape[0] <= MAX_NAMES:
+            self.fail(f"has shape {obj.shape}, expected 1 to {MAX_NAMES} names")
+        try:
+            values = tuple(s.decode() if isinstance(s, bytes) else str(s) for s in obj[()])
+        except UnicodeDecodeError as error:
+            self.fail(f"is not UTF-8 text ({error})")
+        if len(values) != self.sizes[letter][0]:
+            self.fail(f"has {len(values)} names, but field '{self.sizes[letter][1]}' says {letter} = "
+                      f"{self.sizes[letter][0]}")
+        if "" in values or len(set(values)) != len(values):
+            self.fail("has empty or repeated names")
+        return values
+
+    # ---------------------------------------------------------------- attributes
+    def attribute(self, owner: str, key: str, default=None):
+        self.where = f"attribute '{owner + '/' if owner else ''}{key}'"
+        obj = self.h5[owner] if owner else self.h5
+        return obj.attrs.get(key, default)
+
+    def text(self, owner: str, key: str, default: str | None = None, allow_empty: bool = True) -> str:
+        value = self.attribute(owner, key, default)
+        if value is None:
+            self.fail("is missing")
+        if isinstance(value, bytes):
+            try:
+                value = value.decode()
+            except UnicodeDecodeError as error:
+                self.fail(f"is not UTF-8 text ({error})")
+        if not isinstance(value, str):
+            self.fail(f"is {type(value).__name__} {_shown(value)!r}, expected text")
+        if not allow_empty and not value:
+            self.fail("is empty")
+        return value
+
+    def json(self, owner: str, key: str, default: str, kind: type):
+        text = self.text(owner, key, default)
+        try:
+            value = json.loads(text)
+        except ValueError as error:
+            self.fail(f"is not valid JSON ({error})")
+        if not isinstance(value, kind):
+            self.fail(f"is JSON {type(value).__name__}, expected {kind.__name__}")
+        return value
+
+    # ---------------------------------------------------------------- the whole file
+    def read(self) -> Database:
+        self.where = "attribute 'schema_version'"
+        version = self.h5.attrs.get("schema_version")
+        if not (np.ndim(version) == 0 and np.asarray(version).dtype.kind in "iu" and version == SCHEMA_VERSION):
+            raise DatabaseError(f"{self.path}: schema_version is {version}, this reader understands "
+                                f"{SCHEMA_VERSION}")
+        raw, specs = {}, {}
+        for fields, required in ((FIELDS, True), (OPTIONAL_FIELDS, False)):
+            for name, attr, dtype, spec, bounds in fields:
+                array = self.numeric(name, dtype, spec, required)
+                if array is not None:
+                    raw[name], specs[name] = array, (attr, dtype, bounds)
+        values = {}
+        for name, array in raw.items():
+            attr, dtype, bounds = specs[name]
+            self.check_range(name, array, bounds, dtype)
+            values[attr] = self.cast(array, dtype)
+        for name, attr, letter in STRING_FIELDS:
+            values[attr] = self.names(name, letter)
+        self.check_relations(values)
+        extras = dict(
+            garment=self.text("", "garment", allow_empty=False),
+            body_model=self.text("", "body_model", ""),
+            build_command=self.text("", "build_command", ""),
+            provenance=self.json("", "provenance", "{}", dict),
+            region_names=tuple(self.json("garment/regions", "region_names", "[]", list)),
+        )
+        if len(extras["region_names"]) != N_REGIONS or not all(isinstance(n, str) for n in extras["region_names"]):
+            self.fail(f"has {extras['region_names']!r}, expected the names of the {N_REGIONS} regions")
+        if "pose_model/sequence/poses" in raw:
+            fps = self.attribute("pose_model/sequence", "fps", 30.0)
+            if not (np.ndim(fps) == 0 and np.asarray(fps).dtype.kind in "iuf" and 0 < fps <= 1e4):
+                self.fail(f"is {_shown(fps)!r}, expected a frame rate in (0, 10000]")
+            extras["sequence_fps"] = float(fps)
+        basis = self.text("anchors", "shape_basis", "absolute")
+        if basis not in SHAPE_BASES:
+            self.fail(f"is {basis!r}, expected one of {SHAPE_BASES}")
+        extras["shape_basis"] = basis
+        if basis == "skinned_residual":
+            for name in ("garment/binding/triangles", "garment/binding/barycentric", "garment/binding/offset"):
+                if name not in raw:
+                    raise DatabaseError(f"{self.path}: field '{name}' is missing (required by the skinned_residual "
+                                        "basis)")
+            extras["binding_surface"] = self.text("garment/binding", "surface", allow_empty=False)
+        return Database(**values, **extras)
+
+    def check_relations(self, values: dict):
+        """What no single field's range says: sums, orderings, counts that tie fields together."""
+        def field(name):
+            self.where = f"field '{name}'"
+
+        p, b = self.sizes["P"][0], self.sizes["B"][0]
+        field("sensitivity/joint_weights")
+        if self.sizes["D"][0] != 3 * b:
+            self.fail(f"has {self.sizes['D'][0]} pose dofs, expected 3 per bone = {3 * b}")
+        field("anchors/ridge")
+        if self.sizes["Q"][0] != 2 * p + 1:
+            self.fail(f"has {self.sizes['Q'][0]} features, expected 2P+1 = {2 * p + 1}")
+        for name, attr in (("garment/skin_weights", "skin_weights"), ("garment/binding/barycentric",
+                                                                        "binding_barycentric")):
+            if values.get(attr) is not None:
+                field(name)
+                error = np.abs(values[attr].sum(axis=1, dtype=np.float64) - 1.0)
+                if error.max() > SUM_TOLERANCE:
+                    row = int(np.argmax(error))
+                    self.fail(f"rows must sum to 1: row {row} sums to {values[attr][row].sum(dtype=np.float64)}")
+        field("garment/regions")
+        sums = values["regions"].sum(axis=1, dtype=np.float64)
+        if sums.max() > 1.0 + SUM_TOLERANCE:
+            self.fail(f"rows must sum to at most 1: row {int(np.argmax(sums))} sums to {sums.max()}")
+        field("anchors/explained_variance_ratio")
+        sums = values["explained_variance_ratio"].sum(axis=1)
+        if sums.max() > 1.0 + 1e-6:
+            self.fail(f"rows must sum to at most 1: anchor {int(np.argmax(sums))} sums to {sums.max()}")
+        field("body/parents")
+        parents = values["parents"]
+        later = [j for j in range(b) if (parents[j] != -1 if j == 0 else not 0 <= parents[j] < j)]
+        if later:
+            self.fail(f"must list the root first (parent -1) and every other bone after its parent: bone {later[0]} "
+                      f"has parent {parents[later[0]]}")
+        field("body/beta_scale")
+        if values["beta_scale"].min() <= 0:
+            self.fail(f"must be > 0, has {values['beta_scale'].min()} at index {int(np.argmin(values['beta_scale']))}")
+        field("body/beta_range")
+        low, high = values["beta_range"].T
+        if (low > high).any():
+            i = int(np.argmax(low > high))
+            self.fail(f"row {i} has low {low[i]} > high {high[i]}")
+        field("body/beta0")
+        outside = (values["beta0"] < low - 1e-9) | (values["beta0"] > high + 1e-9)
+        if outside.any():
+            i = int(np.argmax(outside))
+            self.fail(f"value {values['beta0'][i]} at index {i} lies outside beta_range [{low[i]}, {high[i]}]")
+
+
+def read_database(path, max_dataset_bytes: int = MAX_DATASET_BYTES) -> Database:
+    """Load and validate a database; raises DatabaseError naming the file, the offending field and what is wrong.
+
+    Every dataset is checked for its dtype kind (no silent float -> int truncation or int64 wrap-around), shape,
+    size (against `max_dataset_bytes`, before it is read), finiteness and range; then the relations between fields
+    (skin weights and barycentric coordinates summing to 1, the bone order, beta_range order, beta_scale > 0, the
+    region and feature counts) and the attributes (text, JSON). A truncated or corrupt file is a DatabaseError too.
+    """
     path = Path(path)
     if not path.is_file():
         raise DatabaseError(f"{path}: database file not found (build one with `agentdress build`)")
     try:
         h5 = h5py.File(path, "r")
-    except OSError as error:
+    except (OSError, ValueError) as error:
         raise DatabaseError(f"{path}: not a readable HDF5 file ({error})") from None
+    reader = _Reader(path, h5, max_dataset_bytes)
     with h5:
-        version = h5.attrs.get("schema_version")
-        if version != SCHEMA_VERSION:
-            raise DatabaseError(f"{path}: schema_version is {version}, this reader understands {SCHEMA_VERSION}")
-        values, sizes = {}, {}
-        for fields, required in ((FIELDS, True), (OPTIONAL_FIELDS, False)):
-            for name, attr, dtype, spec in fields:
-                if name not in h5:
-                    if required:
-                        raise DatabaseError(f"{path}: required field '{name}' is missing")
-                    continue
-                try:
-                    array = np.asarray(h5[name][()], dtype=dtype)
-                except (OSError, ValueError, TypeError) as error:
-                    raise DatabaseError(f"{path}: field '{name}' cannot be read ({error})") from None
-                _check_shape(path, name, array, spec, sizes)
-                if array.dtype.kind == "f" and not np.isfinite(array).all():
-                    raise DatabaseError(f"{path}: field '{name}' contains non-finite values")
-                values[attr] = array
-        for name, attr in STRING_FIELDS:
-            if name not in h5:
-                raise DatabaseError(f"{path}: required field '{name}' is missing")
-            values[attr] = tuple(s.decode() if isinstance(s, bytes) else str(s) for s in h5[name][()])
-        if len(values["bone_names"]) != sizes["B"] or sizes["D"] != 3 * sizes["B"]:
-            raise DatabaseError(f"{path}: field 'body/bone_names' has {len(values['bone_names'])} bones, "
-                                f"other fields say B = {sizes['B']}, D = {sizes['D']}")
-        if sizes["Q"] != 2 * sizes["P"] + 1:
-            raise DatabaseError(f"{path}: field 'anchors/ridge' has {sizes['Q']} features, expected 2P+1 = "
-                                f"{2 * sizes['P'] + 1}")
-        if values["faces"].min() < 0 or values["faces"].max() >= sizes["V"]:
-            raise DatabaseError(f"{path}: field 'garment/faces' indexes outside the {sizes['V']} vertices")
-        if values["skin_indices"].min() < 0 or values["skin_indices"].max() >= sizes["B"]:
-            raise DatabaseError(f"{path}: field 'garment/skin_indices' names bones outside 0..{sizes['B'] - 1}")
-        extras = dict(
-            garment=str(h5.attrs.get("garment", "")),
-            body_model=str(h5.attrs.get("body_model", "")),
-            build_command=str(h5.attrs.get("build_command", "")),
-            provenance=json.loads(h5.attrs.get("provenance", "{}")),
-            region_names=tuple(json.loads(h5["garment/regions"].attrs.get("region_names", "[]"))),
-        )
-        if "pose_model/sequence" in h5:
-            extras["sequence_fps"] = float(h5["pose_model/sequence"].attrs.get("fps", 30.0))
-        basis = str(h5["anchors"].attrs.get("shape_basis", "absolute"))
-        if basis not in SHAPE_BASES:
-            raise DatabaseError(f"{path}: attribute 'anchors/shape_basis' is {basis!r}, expected one of {SHAPE_BASES}")
-        extras["shape_basis"] = basis
-        if basis == "skinned_residual":
-            for name in ("garment/binding/triangles", "garment/binding/barycentric", "garment/binding/offset"):
-                if name not in h5:
-                    raise DatabaseError(f"{path}: field '{name}' is missing (required by the skinned_residual basis)")
-            extras["binding_surface"] = str(h5["garment/binding"].attrs.get("surface", ""))
-            if not extras["binding_surface"]:
-                raise DatabaseError(f"{path}: attribute 'garment/binding/surface' is missing")
-    return Database(**values, **extras)
+        try:
+            return reader.read()
+        except DatabaseError:
+            raise
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError, OverflowError, MemoryError) as error:
+            raise DatabaseError(f"{path}: {reader.where} cannot be read ({type(error).__name__}: {error})") from None
