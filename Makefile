@@ -2,7 +2,10 @@
 # Installs are recorded by stamp files inside .venv: they are redone only when a requirements file (or setup.py /
 # setup.cfg) changes, and deleting .venv starts from scratch.
 SHELL := /bin/bash
-PYTHON ?= python3
+# The ROS 2 Jazzy wheels on PyPI are built for CPython 3.11 only: the venv is made with python3.11, or with python3
+# when that is 3.11 (override with `make PYTHON=/path/to/python3.11 ...`).
+IS_311 := import sys; sys.exit(sys.version_info[:2] != (3, 11))
+PYTHON ?= $(shell for p in python3.11 python3; do $$p -c '$(IS_311)' >/dev/null 2>&1 && { echo $$p; break; }; done)
 VENV := .venv
 BIN := $(VENV)/bin
 PIP := $(BIN)/python -m pip
@@ -16,6 +19,12 @@ setup: $(RUNTIME_STAMP)
 setup-test: $(TEST_STAMP)
 
 $(BIN)/python:
+	@if [ -z "$(PYTHON)" ] || ! $(PYTHON) -c '$(IS_311)' >/dev/null 2>&1; then \
+		echo "error: setup needs CPython 3.11 (the ROS 2 Jazzy wheels are built for it), and" \
+			"$(if $(PYTHON),PYTHON=$(PYTHON) is not 3.11,neither python3.11 nor python3 on PATH is 3.11). Install it - Debian/Ubuntu:" \
+			"'apt-get install python3.11 python3.11-venv' (older Ubuntu: the deadsnakes PPA); anywhere:" \
+			"'pyenv install 3.11' - or name it: make PYTHON=/path/to/python3.11 $(MAKECMDGOALS)" >&2; \
+		exit 1; fi
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install -U pip
 
@@ -34,7 +43,7 @@ $(TEST_STAMP): requirements/test.txt requirements/build.txt $(RUNTIME_STAMP)
 	touch $@
 
 test: setup-test
-	$(BIN)/python -m pytest -q test
+	$(BIN)/python -m pytest -q -rs test
 
 # Node + demo motion + web viewer on the default configuration (prints the URL to open); Ctrl-C stops all three.
 run: setup

@@ -7,10 +7,12 @@ SHARED = Path(__file__).resolve().parents[2] / "shared"
 
 
 def shared_path(*parts) -> Path:
-    """A path under ../shared, or skip the test with the reason when that data is absent."""
+    """A path under ../shared; a test that needs it fails, naming the path, when that data is absent (it is part of
+    the test set, not an optional extra: a missing checkout of it must not pass as skipped tests)."""
     path = SHARED.joinpath(*parts)
     if not path.exists():
-        pytest.skip(f"test data {path} is absent (the project reads ../shared beside the checkout)")
+        pytest.fail(f"test data {path} is absent: the tests read ../shared beside the checkout (mocap clips, "
+                    "reference garments); put it there", pytrace=False)
     return path
 
 

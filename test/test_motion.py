@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from agentdress_ros.motion import bvh, joint_names, procedural, retarget, rotations, skeleton
 from agentdress_ros.motion.skeleton import BONE_NAMES, NUM_BONES, PARENTS, Pose
 
-MOCAP = Path(__file__).resolve().parents[1].parent / "shared" / "mocap"
+from .conftest import shared_path
 IDX = {name: i for i, name in enumerate(BONE_NAMES)}
 rng = np.random.default_rng(7)
 
@@ -23,10 +23,8 @@ needs_anny = pytest.mark.skipif(
 
 
 def mocap(*parts) -> Path:
-    path = MOCAP.joinpath(*parts)
-    if not path.exists():
-        pytest.skip(f"mocap clip {path} is absent (the CMU clips live in ../shared/mocap beside the checkout)")
-    return path
+    """A clip under ../shared/mocap (the test fails, naming it, when it is absent)."""
+    return shared_path("mocap", *parts)
 
 
 def rig_fk(rotvecs, translation, heads, tails):
