@@ -12,6 +12,7 @@ run in another thread while frames are produced.
 """
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, replace
 
@@ -51,6 +52,7 @@ class _ShapeState:
     clearances: np.ndarray  # (N, V) d0^s (or (1, 1) when penetration is off)
     body_points: np.ndarray  # (V, 3) bound body vertex at rest
     body_normals: np.ndarray  # (V, 3)
+    rest: np.ndarray  # (V, 3) config dtype: the garment fitted to beta at rest (its binding; beta0's rest without one)
 
 
 def select_database(db: Database, config: EngineConfig) -> Database:
@@ -241,7 +243,13 @@ class Engine:
             block_start=self.block_start, block_regions=self.block_regions, region_w=self.region_w)
         self.pose_model = make_pose_model(config.pose_model, context)
 
-        # frame buffers, allocated once
+        self.pose_model_context = context
+        self._allocate_frame_buffers()
+        self.bad_frames = 0
+        self.shape_report = self.set_shape(db.beta0)
+
+    def _allocate_frame_buffers(self):
+        """Per-frame scratch and output buffers (allocated once per engine; a fork gets its own)."""
         b, r, k = self.n_bones, self.q.shape[0], self.neighbors
         self._theta = np.zeros((b, 3))
         self._theta_flat = self._theta.reshape(-1)
@@ -255,7 +263,7 @@ class Engine:
         self.transforms = np.zeros((b, 3, 4), dtype=self.dtype)  # (B, 3, 4) of the last frame, current shape
         self.selected = np.zeros((r, k), dtype=np.int32)
         self.weights = np.zeros((r, k), dtype=self.dtype)
-        self._distances = np.zeros((r, db.n_anchors))
+        self._distances = np.zeros((r, self.db.n_anchors))
         self._has_distances = False
         v = self.n_vertices
         self._blended = np.zeros((3, v), dtype=self.dtype)
@@ -264,11 +272,10 @@ class Engine:
         self._push = np.zeros(v, dtype=self.dtype)
         self._no_pose = np.zeros((3, v), dtype=self.dtype)
         rest = np.empty((v, 3), dtype=self.dtype)
-        rest[self.order] = db.rest
+        rest[self.order] = self.db.rest
         self._buffers = (rest, rest.copy())  # double buffer: the last good frame survives a bad one
         self._current = 0
-        self.bad_frames = 0
-        self.shape_report = self.set_shape(db.beta0)
+        self._skinned = np.empty((v, 3), dtype=self.dtype)
 
     # ---------------------------------------------------------------- shape (rare, off the frame path)
     def _coefficients(self, beta) -> np.ndarray:
@@ -283,10 +290,14 @@ class Engine:
             forward_kinematics(pose, np.zeros(3), heads, self.parents, transforms[s])
         return transforms
 
+    def _fitted_rest(self, shape) -> np.ndarray:
+        """(V, 3) float64 the garment fitted to `shape` at rest (its surface binding), internal vertex order."""
+        return evaluate_surface_binding(self._binding, shape.vertices, vertex_normals(shape.vertices,
+                                                                                      self._surface_faces))
+
     def _skinned_at_anchors(self, shape, transforms) -> np.ndarray:
         """(N, V, 3) the garment fitted to `shape` at rest (its binding) and skinned to every anchor pose."""
-        normals = vertex_normals(shape.vertices, self._surface_faces)
-        rest = evaluate_surface_binding(self._binding, shape.vertices, normals)
+        rest = self._fitted_rest(shape)
         out = np.empty((len(transforms), self.n_vertices, 3))
         for s in range(len(transforms)):
             linear_blend_skinning(rest, self.skin_indices, self._skin_weights64, transforms[s], out[s])
@@ -318,6 +329,7 @@ class Engine:
         # new arrays only, never the live ones: a frame may be reading them while this runs in another thread
         transforms = self._anchor_transforms(heads)
         base = self._skinned_at_anchors(shape, transforms) if self._residual else self._base0
+        rest = np.ascontiguousarray(self._fitted_rest(shape) if self._residual else db.rest, dtype=self.dtype)
         phi = self._coefficients(effective)
         normals = vertex_normals(shape.vertices, self.body.body_faces)
         body_points = np.ascontiguousarray(shape.vertices[self.bound_body_vertex], dtype=self.dtype)
@@ -329,12 +341,79 @@ class Engine:
                       self._skin_weights64, self.mode, config.penetration, body_points.astype(np.float64),
                       body_normals.astype(np.float64), config.penetration_margin, deltas, clearances,
                       self._residual, base, self._base0, self._anchor_transforms0)
-        self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals)
+        self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals, rest)
         report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start)
         self.shape_report = report
         return report
 
+    # ---------------------------------------------------------------- many agents on one loaded database
+    #: EngineConfig fields a fork may change: they act per frame and leave the shape state's meaning unchanged.
+    FORK_FIELDS = ("neighbors", "penetration", "decay", "damping", "power")
+
+    def fork(self, **changes) -> "Engine":
+        """A new engine for another agent (or another level of detail of this one) on the same loaded data.
+
+        Shared, read-only: the database, anchor features, pose-model examples, skin weights, anchor transforms at
+        beta0. Own: frame buffers, decay history, the shape state (it starts as this engine's; `set_shape` or
+        `follow_shape` replace it). `changes` may set the per-frame knobs in FORK_FIELDS; turning penetration on
+        needs a parent that computes the clearances (penetration on). Costs ~100 kB at 1,200 vertices.
+        """
+        bad = sorted(set(changes) - set(self.FORK_FIELDS))
+        if bad:
+            raise ValueError(f"a fork can change only {', '.join(self.FORK_FIELDS)}; not {', '.join(bad)}")
+        config = replace(self.config, **changes)
+        if config.penetration and not self.config.penetration:
+            raise ValueError("a fork with penetration handling needs a parent that has it (clearances)")
+        twin = copy.copy(self)
+        twin.config = config
+        twin.neighbors = min(int(config.neighbors), self.db.n_anchors)
+        context = replace(self.pose_model_context, power=float(config.power), decay=bool(config.decay),
+                          damping=float(config.damping))
+        twin.pose_model_context = context
+        fork_pose_model = getattr(self.pose_model, "fork", None)
+        twin.pose_model = fork_pose_model(context) if callable(fork_pose_model) else self.pose_model
+        twin._allocate_frame_buffers()
+        twin._buffers[0][...] = self._buffers[self._current]
+        return twin
+
+    def follow_shape(self, source: "Engine") -> None:
+        """Take `source`'s shape state (an engine forked from the same parent): one set_shape serves every level
+        of detail of an agent. Atomic (one reference)."""
+        if source.db is not self.db:
+            raise ValueError("follow_shape needs an engine on the same loaded database")
+        self.shape_report = source.shape_report
+        self._state = source._state
+
+    def skin(self, rotvecs, root_translation=None) -> np.ndarray:
+        """The garment fitted to the current shape and skinned to the pose (V, 3), output order: no pose model,
+        no shape model, no penetration handling (the cheapest level of detail; same vertices and topology as
+        `synthesize`). Returns a view of an internal buffer like `synthesize`."""
+        state = self._state
+        self._pose(rotvecs, root_translation, state)
+        linear_blend_skinning(state.rest, self.skin_indices, self.skin_weights, self.transforms, self._skinned)
+        out = self._buffers[1 - self._current]
+        out[self.order] = self._skinned
+        if not np.isfinite(out).all():
+            self.bad_frames += 1
+            return self._buffers[self._current]
+        self._current = 1 - self._current
+        return out
+
     # ---------------------------------------------------------------- frame path
+    def _pose(self, rotvecs, root_translation, state: _ShapeState) -> None:
+        """Check and canonicalise the pose; forward kinematics on beta0's and the current skeleton (self.transforms).
+        Raises ValueError naming the joint for a non-finite input."""
+        rotvecs = np.asarray(rotvecs)
+        if rotvecs.shape != (self.n_bones, 3):
+            raise ValueError(f"rotvecs must have shape ({self.n_bones}, 3), got {rotvecs.shape}")
+        root = self._zero3 if root_translation is None else np.asarray(root_translation).reshape(3)
+        code = prepare_pose(rotvecs, root, self.config.max_root_translation, self._theta, self._root)
+        if code >= 0:
+            what = "root translation" if code == self.n_bones else f"joint {self.db.bone_names[code]}"
+            raise ValueError(f"non-finite pose input for {what}")
+        pose_transforms(self._theta, self._root, self._heads0, state.heads, self.parents, self._rotations,
+                        self._positions0, self._positions, self._transforms0, self.transforms)
+
     def reset(self):
         """Forget the decay history (Eq. 9), e.g. after a cut in the motion."""
         self._has_distances = False
@@ -348,16 +427,7 @@ class Engine:
         used by the "sequence" pose model. Raises ValueError naming the joint for a non-finite input.
         """
         state = self._state  # one read: a concurrent set_shape swaps the whole state
-        rotvecs = np.asarray(rotvecs)
-        if rotvecs.shape != (self.n_bones, 3):
-            raise ValueError(f"rotvecs must have shape ({self.n_bones}, 3), got {rotvecs.shape}")
-        root = self._zero3 if root_translation is None else np.asarray(root_translation).reshape(3)
-        code = prepare_pose(rotvecs, root, self.config.max_root_translation, self._theta, self._root)
-        if code >= 0:
-            what = "root translation" if code == self.n_bones else f"joint {self.db.bone_names[code]}"
-            raise ValueError(f"non-finite pose input for {what}")
-        pose_transforms(self._theta, self._root, self._heads0, state.heads, self.parents, self._rotations,
-                        self._positions0, self._positions, self._transforms0, self.transforms)
+        self._pose(rotvecs, root_translation, state)
         config = self.config
         if config.shape_model:
             region_neighbours(self._theta_flat, self.features, self.dofs, self.q, self.eps, config.power,

@@ -13,6 +13,7 @@ reads it before the next call. Later models (learned, volumetric) register the s
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Callable, Protocol, runtime_checkable
 
@@ -134,6 +135,19 @@ class ExamplePoseModel:
     def reset(self):
         self.has_state = False
 
+    def fork(self, context: PoseModelContext) -> "ExamplePoseModel":
+        """A model sharing the unposed examples, with its own decay history and buffers (another agent, or other
+        per-frame knobs in `context`)."""
+        twin = copy.copy(self)
+        twin.context = context
+        k = min(context.neighbours, len(self.features))
+        twin.state = np.zeros_like(self.state)
+        twin.has_state = False
+        twin.selected = np.zeros((self.state.shape[0], k), dtype=np.int32)
+        twin.weights = np.zeros((self.state.shape[0], k), dtype=context.dtype)
+        twin.out = np.empty_like(self.out)
+        return twin
+
     def evaluate(self, theta, root, frame):
         c = self.context
         region_neighbours(theta.reshape(-1), self.features, c.dofs, c.region_dof, c.eps, c.power, c.damping,
@@ -164,6 +178,11 @@ class SequencePoseModel:
         self.roots = np.zeros((len(poses), 3)) if roots is None else np.asarray(roots, dtype=np.float64)
         self.out = np.empty(self.drapes.shape[1:], dtype=context.dtype)
         self.dofs = context.dofs
+
+    def fork(self, context: PoseModelContext) -> "SequencePoseModel":
+        twin = copy.copy(self)
+        twin.out = np.empty_like(self.out)
+        return twin
 
     def nearest_frame(self, theta) -> int:
         diff = theta.reshape(-1)[self.dofs] - self.features

@@ -1,0 +1,157 @@
+"""Garments of a crowd: data loaded once per scene, a small state per agent.
+
+`GarmentLibrary` loads each garment database (and builds its engine: pose-model examples, anchor features) or
+skinned template once, keyed by what defines it, thread-safe. `AgentGarment` is one agent's garment: engine forks
+per synthesis tier over the shared data (own frame buffers and decay history, one shape state that every tier
+follows), the fitted garment skinned for skinned tiers (same vertices and topology), and a cross-fade over a few
+frames when the level changes, so a tier change does not pop.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..body import REFERENCE_SHAPE
+
+__all__ = ["AgentGarment", "GarmentLibrary", "GarmentSpec"]
+
+
+@dataclass(frozen=True)
+class GarmentSpec:
+    """One garment of an agent: template name, vertex budget of a skinned template (None: default), database path
+    (None: the skinned template), engine knobs ((field, value), ...) of a database garment."""
+
+    name: str
+    vertices: int | None = None
+    database: str | None = None
+    engine: tuple = ()
+
+
+class GarmentLibrary:
+    """Shared, read-only garment data of a scene on one body. `get(spec)` returns the loaded model for a spec (an
+    EngineGarmentModel or SkinnedGarmentModel from ros.garment_models' makers), loading it on first use."""
+
+    def __init__(self, body, make_model=None, make_body=None):
+        self.body = body
+        if make_model is None or make_body is None:  # the node's garment models (no rclpy in that module)
+            from ..ros import garment_models
+
+            make_model = make_model or garment_models.make_garment_model
+            make_body = make_body or garment_models.make_body_model
+        self._make, self._make_body = make_model, make_body
+        self._models: dict = {}
+        self._lock = threading.Lock()
+
+    def get(self, spec: GarmentSpec):
+        """The shared model of `spec` ("body": the visible body surface); raises what the makers raise."""
+        with self._lock:
+            model = self._models.get(spec)
+            if model is None:
+                if spec.name == "body":
+                    model = self._make_body(self.body)
+                else:
+                    engine_config = None
+                    if spec.database and spec.engine:
+                        from ..engine.config import EngineConfig
+
+                        engine_config = EngineConfig(**dict(spec.engine))
+                    model = self._make(spec.name, spec.database, spec.vertices, self.body, REFERENCE_SHAPE,
+                                       engine_config)
+                self._models[spec] = model
+            return model
+
+    def models(self) -> list:
+        with self._lock:
+            return list(self._models.values())
+
+    def __len__(self) -> int:
+        return len(self._models)
+
+
+class AgentGarment:
+    """One agent's garment over a shared model, with one level per tier (lod.Tier).
+
+    dress(level, rotvecs, root) -> (V, 3) float32 (an internal buffer, valid until the next call).
+    set_shape(beta) -> clamped (off the frame path; swaps state by reference).
+    """
+
+    def __init__(self, shared, tiers, fade_frames: int = 6):
+        self.name, self.faces, self.kind = shared.name, shared.faces, shared.kind
+        self.n_vertices = shared.n_vertices
+        self.fade_frames = int(fade_frames)
+        engine = getattr(shared, "engine", None)
+        self._levels = []  # per tier: ("synthesis", engine) | ("skinned", engine) | ("model", model)
+        if engine is not None:
+            self.base = engine.fork()
+            forks = {}
+            for tier in tiers:
+                if tier.kind == "skinned":
+                    self._levels.append(("skinned", self.base))
+                else:
+                    key = tuple(tier.engine)
+                    if key not in forks:
+                        forks[key] = self.base.fork(**dict(key)) if key else self.base
+                    self._levels.append(("synthesis", forks[key]))
+            self._engines = list(forks.values()) + ([self.base] if () not in forks else [])
+        else:  # a skinned template: every tier is the same model
+            self.base = shared.clone()
+            self._engines = []
+            self._levels = [("model", self.base)] * len(tiers)
+        self._out = np.zeros((self.n_vertices, 3), dtype=np.float32)
+        self._old = np.zeros_like(self._out)
+        self.level: int | None = None
+        self._fade_from: int | None = None
+        self._fade_left = 0
+
+    @property
+    def fading(self) -> bool:
+        return self._fade_left > 0
+
+    def set_shape(self, beta) -> bool:
+        if self._engines:
+            clamped = bool(self.base.set_shape(beta).clamped)
+            for engine in self._engines:
+                if engine is not self.base:
+                    engine.follow_shape(self.base)
+            return clamped
+        return bool(self.base.set_shape(beta))
+
+    def _run(self, level: int, rotvecs, root) -> np.ndarray:
+        kind, target = self._levels[level]
+        if kind == "synthesis":
+            return target.synthesize(rotvecs, root)
+        if kind == "skinned":
+            return target.skin(rotvecs, root)
+        return target.synthesize(rotvecs, root)
+
+    def same_output(self, a: int, b: int) -> bool:
+        """Levels a and b compute the same thing (no fade needed between them)."""
+        return self._levels[a] == self._levels[b]
+
+    def dress(self, level: int, rotvecs, root) -> np.ndarray:
+        if self.level is not None and level != self.level and not self.same_output(level, self.level) \
+                and self.fade_frames > 0:
+            self._fade_from, self._fade_left = self.level, self.fade_frames
+            kind, target = self._levels[level]
+            if kind == "synthesis":
+                target.reset()  # its decay history is from the last time it ran
+        self.level = level
+        new = self._run(level, rotvecs, root)
+        if self._fade_left > 0:
+            np.copyto(self._old, new)
+            old = self._run(self._fade_from, rotvecs, root)
+            a = (self.fade_frames - self._fade_left + 1.0) / self.fade_frames  # 1/F, 2/F, ..., 1
+            np.multiply(old, 1.0 - a, out=self._out, casting="unsafe")
+            self._out += a * self._old
+            self._fade_left -= 1
+        else:
+            np.copyto(self._out, new, casting="unsafe")
+        return self._out
+
+    def reset(self) -> None:
+        """Forget decay history (the agent's motion was interrupted: back into view, a cut)."""
+        for engine in self._engines:
+            engine.reset()
+        self._fade_left = 0

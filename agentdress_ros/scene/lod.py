@@ -1,0 +1,184 @@
+"""Levels of detail by distance to the viewer, with hysteresis, and field-of-view culling (pure functions and small
+state: no ROS, no engine).
+
+A tier is one line of text, so a list of them is a plain ROS string-array parameter:
+
+    "near 3 synthesis"                                   full synthesis under 3 m
+    "mid 8 synthesis neighbors=2 penetration=false"      fewer anchors blended, no penetration handling, under 8 m
+    "far 20 skinned"                                     the garment fitted to the body and skinned, under 20 m
+    "distant inf skinned every=3"                        beyond: dressed every third tick
+
+`<name> <max distance in m | inf> <synthesis | skinned> [key=value ...]`: keys are the engine's per-frame knobs
+(`Engine.FORK_FIELDS`: neighbors, penetration, decay, damping, power) for synthesis tiers, and `every=n` for any
+tier. Tiers are ordered by distance; the last one must reach `inf`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["DEFAULT_TIERS", "LodPolicy", "Tier", "Viewer", "parse_tier", "parse_tiers", "quaternion_forward"]
+
+#: Engine knobs a tier may set, with their coercion (Engine.FORK_FIELDS).
+TIER_ENGINE_FIELDS = {"neighbors": int, "penetration": bool, "decay": bool, "damping": float, "power": float}
+TIER_KINDS = ("synthesis", "skinned")
+
+
+@dataclass(frozen=True)
+class Tier:
+    name: str
+    max_distance: float  # metres; the tier holds agents closer than this (inf for the last)
+    kind: str = "synthesis"  # "synthesis" (the engine) | "skinned" (the fitted garment, skinned)
+    engine: tuple = ()  # ((field, value), ...) engine fork overrides of a synthesis tier
+    every: int = 1  # dress on every n-th tick only (a lower pose rate for far agents)
+
+    def text(self) -> str:
+        extra = [f"{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in self.engine]
+        extra += [f"every={self.every}"] if self.every != 1 else []
+        return " ".join([self.name, "inf" if math.isinf(self.max_distance) else f"{self.max_distance:g}",
+                         self.kind] + extra)
+
+
+DEFAULT_TIER_TEXT = ("near 3 synthesis", "mid 8 synthesis neighbors=2 penetration=false", "far 20 skinned",
+                     "distant inf skinned every=3")
+
+
+def _value(key: str, text: str):
+    kind = TIER_ENGINE_FIELDS[key]
+    if kind is bool:
+        if text.lower() not in ("true", "false"):
+            raise ValueError(f"{key} must be true or false, got {text!r}")
+        return text.lower() == "true"
+    try:
+        value = kind(text)
+    except ValueError:
+        raise ValueError(f"{key}: {text!r} is not {'an integer' if kind is int else 'a number'}") from None
+    if kind is int and value < 1:
+        raise ValueError(f"{key} must be >= 1, got {value}")
+    if kind is float and not math.isfinite(value):
+        raise ValueError(f"{key} must be finite, got {text!r}")
+    return value
+
+
+def parse_tier(text: str) -> Tier:
+    """One tier line (module docstring) -> Tier; ValueError naming the line and what is wrong."""
+    words = str(text).split()
+    try:
+        if len(words) < 3:
+            raise ValueError("needs '<name> <max distance> <synthesis|skinned> [key=value ...]'")
+        name, distance, kind, extra = words[0], words[1], words[2], words[3:]
+        try:
+            max_distance = float(distance)
+        except ValueError:
+            raise ValueError(f"max distance {distance!r} is not a number (or inf)") from None
+        if math.isnan(max_distance) or max_distance <= 0:
+            raise ValueError(f"max distance must be > 0, got {distance}")
+        if kind not in TIER_KINDS:
+            raise ValueError(f"kind must be one of {', '.join(TIER_KINDS)}, got {kind!r}")
+        engine, every = {}, 1
+        for item in extra:
+            key, sep, value = item.partition("=")
+            if not sep or not value:
+                raise ValueError(f"{item!r} must look like key=value")
+            if key == "every":
+                every = _value("neighbors", value)  # a positive integer
+            elif key in TIER_ENGINE_FIELDS:
+                if kind != "synthesis":
+                    raise ValueError(f"{key} applies to synthesis tiers only")
+                engine[key] = _value(key, value)
+            else:
+                raise ValueError(f"unknown key {key!r}; one of every, {', '.join(TIER_ENGINE_FIELDS)}")
+        return Tier(name, max_distance, kind, tuple(sorted(engine.items())), every)
+    except ValueError as error:
+        raise ValueError(f"tier {text!r}: {error}") from None
+
+
+def parse_tiers(lines) -> tuple[Tier, ...]:
+    """Tier lines -> tiers ordered by distance; ValueError for repeated names, unordered distances or a last tier
+    that does not reach inf."""
+    tiers = tuple(parse_tier(line) for line in lines if str(line).strip())
+    if not tiers:
+        raise ValueError("at least one tier is needed (e.g. 'all inf synthesis')")
+    names = [t.name for t in tiers]
+    if len(set(names)) != len(names):
+        raise ValueError(f"tier names repeat: {names}")
+    distances = [t.max_distance for t in tiers]
+    if any(b <= a for a, b in zip(distances, distances[1:])):
+        raise ValueError(f"tier distances must increase: {distances}")
+    if not math.isinf(distances[-1]):
+        raise ValueError(f"the last tier must reach inf (got {distances[-1]:g} m): agents beyond it need a tier")
+    return tiers
+
+
+DEFAULT_TIERS = parse_tiers(DEFAULT_TIER_TEXT)
+
+
+def quaternion_forward(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """The +x axis (REP-103 body frame: forward) of orientation quaternion (x, y, z, w), unit length."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not math.isfinite(n) or n < 1e-9:
+        raise ValueError("orientation quaternion must be finite and non-zero")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([1 - 2 * (y * y + z * z), 2 * (x * y + z * w), 2 * (x * z - y * w)])
+
+
+@dataclass(frozen=True)
+class Viewer:
+    """The viewer (headset) in the agents' frame: position (3,) and unit forward direction (3,)."""
+
+    position: np.ndarray
+    forward: np.ndarray
+
+    @classmethod
+    def from_pose(cls, position, quaternion, offset=(0.0, 0.0, 0.0, 0.0)) -> "Viewer":
+        """A pose in the viewer's frame, mapped into the agents' frame by a fixed offset (x, y, z, yaw): the viewer
+        frame's origin and heading in the agents' frame."""
+        ox, oy, oz, yaw = (float(v) for v in offset)
+        c, s = math.cos(yaw), math.sin(yaw)
+        rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        p = rotate @ np.asarray(position, dtype=np.float64) + (ox, oy, oz)
+        f = rotate @ quaternion_forward(*quaternion)
+        if not np.isfinite(p).all():
+            raise ValueError("viewer position must be finite")
+        return cls(p, f)
+
+
+@dataclass(frozen=True)
+class LodPolicy:
+    """Tiers with hysteresis (metres) and the viewing cone (full field of view and margin, degrees).
+
+    `agent_radius` is the bounding sphere of an agent around its hips (1 m holds a person with raised arms)."""
+
+    tiers: tuple = DEFAULT_TIERS
+    hysteresis: float = 0.5
+    fov_deg: float = 110.0
+    margin_deg: float = 10.0
+    agent_radius: float = 1.0
+    cull: bool = True
+
+    def tier(self, distance: float, current: int | None) -> int:
+        """Tier index for `distance`, keeping `current` until the distance is `hysteresis` beyond the boundary (no
+        flicker at a boundary; a large jump goes straight to the tier it lands in)."""
+        bounds = [t.max_distance for t in self.tiers]
+        raw = next(i for i, b in enumerate(bounds) if distance < b or math.isinf(b))
+        if current is None or raw == current or current >= len(bounds):
+            return raw
+        h = self.hysteresis
+        if raw > current:  # moving out: must clear the boundary of the tier below by h
+            return raw if distance >= bounds[raw - 1] + h else raw - 1
+        return raw if distance <= bounds[raw] - h else raw + 1  # moving in
+
+    def visible(self, viewer: Viewer | None, centre) -> bool:
+        """Inside the viewing cone widened by the margin and by the agent's angular radius (always when close)."""
+        if viewer is None or not self.cull:
+            return True
+        d = np.asarray(centre, dtype=np.float64) - viewer.position
+        distance = float(np.sqrt(d @ d))
+        if distance <= self.agent_radius:
+            return True
+        cos_angle = float(d @ viewer.forward) / distance
+        angle = math.degrees(math.acos(max(-1.0, min(1.0, cos_angle))))
+        widen = math.degrees(math.asin(min(1.0, self.agent_radius / distance)))
+        return angle <= 0.5 * self.fov_deg + self.margin_deg + widen

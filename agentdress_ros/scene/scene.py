@@ -1,0 +1,397 @@
+"""A crowd of agents dressed on one thread: levels of detail, culling, idle skip and the frame budget (no ROS).
+
+    scene = Scene(body, SceneConfig(budget_ms=8.0))
+    scene.request_agent(AgentSpec("alice", garments, beta))   # built on the worker thread, installed by a tick
+    scene.agents["alice"].pose.accept(...)                    # the pose input (ros.inputs.PoseInput or PoseState)
+    scene.set_viewer(Viewer.from_pose(position, quaternion))  # optional
+    report = scene.tick(publish)   # publish(agent, {garment: (V, 3) float32}, stamp_ns) per dressed agent
+
+Each tick: install what the worker built (new agents, removals are immediate); per agent the distance to the
+viewer picks a tier (hysteresis), the viewing cone culls; an agent is a candidate when it is visible, due (tiers
+with `every` > 1 on their ticks, staggered over agents) and something changed (new pose, new shape, back in view,
+a fade in progress); the scheduler fits the candidates into `budget_ms` with the measured cost of each agent's
+level; the decisions run nearest first, each timed (dressing + publish) into its level's cost estimate.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..body import REFERENCE_SHAPE
+from ..motion.skeleton import NUM_BONES
+from .garments import AgentGarment, GarmentLibrary, GarmentSpec
+from .lod import LodPolicy, Viewer
+from .scheduler import Candidate, schedule
+
+__all__ = ["AgentSpec", "PoseState", "Scene", "SceneConfig", "TickReport"]
+
+#: Height of the hips above the root translation's origin (the rest Hips sit ~0.9 m up): the agent's centre.
+HIPS_HEIGHT = 0.9
+DEFAULT_COST_MS = 0.2  # estimate for a level never measured yet
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """What an agent wears and where its frame sits: garments (in publishing order), initial shape, frame_id,
+    origin (x, y, z of its frame in the scene's frame, for distances), extra_cost_ms (an artificial per-frame cost:
+    tests and benchmarks of the budget), publish_body (also dress the body)."""
+
+    name: str
+    garments: tuple = (GarmentSpec("tshirt"),)
+    beta: tuple = tuple(float(b) for b in REFERENCE_SHAPE)
+    frame_id: str = "agent"
+    origin: tuple = (0.0, 0.0, 0.0)
+    extra_cost_ms: float = 0.0
+    publish_body: bool = False
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    lod: LodPolicy = LodPolicy()
+    lod_enabled: bool = True  # False: every agent at the first tier, never culled
+    budget_ms: float = 8.0  # <= 0: no budget
+    protect_tiers: int = 1  # tiers below this index are never lowered or skipped by the budget
+    fade_frames: int = 6
+    cost_smoothing: float = 0.2  # weight of a new measurement in a level's cost estimate
+
+
+class PoseState:
+    """A minimal pose input (the node uses ros.inputs.PoseInput, which checks messages): rotvecs, root translation,
+    version, stamp."""
+
+    def __init__(self):
+        self.values = np.zeros(3 * NUM_BONES + 3)
+        self.version = 0
+        self.stamp_ns = 0
+
+    def set(self, rotvecs, root_translation=(0.0, 0.0, 0.0), stamp_ns: int = 0):
+        self.values[: 3 * NUM_BONES] = np.asarray(rotvecs, dtype=np.float64).reshape(-1)
+        self.values[3 * NUM_BONES:] = np.asarray(root_translation, dtype=np.float64)
+        self.version += 1
+        self.stamp_ns = int(stamp_ns)
+
+    @property
+    def rotvecs(self) -> np.ndarray:
+        return self.values[: 3 * NUM_BONES].reshape(NUM_BONES, 3).copy()
+
+    @property
+    def root_translation(self) -> np.ndarray:
+        return self.values[3 * NUM_BONES:].copy()
+
+
+class Agent:
+    """One agent's state: its pose input, garments (per-agent state over shared data), level of detail, costs."""
+
+    def __init__(self, spec: AgentSpec, garments: dict, pose, slot: int, clamped: bool):
+        self.spec, self.name, self.garments, self.pose, self.slot = spec, spec.name, garments, pose, slot
+        self.clamped = clamped
+        self.tier: int | None = None  # distance tier (hysteresis state)
+        self.level: int | None = None  # level dressed last
+        self.tier_dressed: int | None = None  # distance tier when last dressed (a tier change is news)
+        self.visible = True
+        self.distance = 0.0
+        self.done_version = -1
+        self.dirty = True  # dress on the next tick even without a new pose
+        self.waited = 0  # ticks in a row skipped by the budget
+        self.cost_ms: dict[int, float] = {}
+        self.shape_generation = 0
+
+    def centre(self) -> np.ndarray:
+        root = self.pose.values[3 * NUM_BONES:]
+        return np.array([root[0], root[1], root[2] + HIPS_HEIGHT]) + self.spec.origin
+
+    def fading(self) -> bool:
+        return any(g.fading for g in self.garments.values())
+
+    def dress(self, level: int) -> dict:
+        rotvecs, root = self.pose.rotvecs, self.pose.root_translation
+        out = {name: garment.dress(level, rotvecs, root) for name, garment in self.garments.items()}
+        if self.spec.extra_cost_ms > 0:  # an artificially expensive agent: spin for the injected cost
+            end = time.perf_counter() + self.spec.extra_cost_ms * 1e-3
+            while time.perf_counter() < end:
+                pass
+        return out
+
+    def set_shape(self, beta) -> bool:
+        return any([g.set_shape(beta) for g in self.garments.values()])
+
+    def memory_bytes(self, shared=()) -> int:
+        """Bytes of the numpy arrays reachable from this agent's garments that are not reachable from `shared`
+        (the library's models): the agent's own state."""
+        exclude = {id(a) for a in _arrays(shared)}
+        return sum(a.nbytes for a in _arrays(self.garments.values()) if id(a) not in exclude)
+
+
+def _arrays(roots, depth: int = 4) -> list:
+    """Distinct numpy arrays owning their memory, reachable from `roots` through attributes, dicts and sequences."""
+    seen, found = set(), []
+
+    def walk(obj, level):
+        if isinstance(obj, np.ndarray):
+            base = obj if obj.base is None else obj.base
+            if isinstance(base, np.ndarray) and id(base) not in seen:
+                seen.add(id(base))
+                found.append(base)
+            return
+        if level > depth or id(obj) in seen or isinstance(obj, (str, bytes, int, float)):
+            return
+        seen.add(id(obj))
+        if isinstance(obj, dict):
+            items = obj.values()
+        elif isinstance(obj, (list, tuple)):
+            items = obj
+        elif hasattr(obj, "__dict__"):
+            items = vars(obj).values()
+        else:
+            return
+        for item in items:
+            walk(item, level + 1)
+
+    for root in roots:
+        walk(root, 0)
+    return found
+
+
+@dataclass
+class TickReport:
+    dressed: list = field(default_factory=list)  # agent names dressed this tick
+    skipped: list = field(default_factory=list)  # skipped by the budget
+    culled: int = 0
+    idle: int = 0
+    ms: float = 0.0
+    estimate_ms: float = 0.0
+
+
+def percentiles(values, digits: int = 4) -> dict:
+    """p50, p99, max and count of a sequence of timings (None when empty), rounded for JSON."""
+    if not values:
+        return {"p50": None, "p99": None, "max": None, "n": 0}
+    array = np.fromiter(values, dtype=np.float64)
+    p50, p99 = np.percentile(array, [50, 99])
+    return {"p50": round(float(p50), digits), "p99": round(float(p99), digits),
+            "max": round(float(array.max()), digits), "n": int(array.size)}
+
+
+class TierStats:
+    """Per tier: agents now, dressed frames, frames degraded by the budget, ms per tick (rolling)."""
+
+    def __init__(self, names, window: int = 1000):
+        self.names = list(names)
+        self.agents = Counter()
+        self.culled = Counter()
+        self.frames = Counter()
+        self.degraded = Counter()
+        self.ms = {n: deque(maxlen=window) for n in self.names}
+
+    def as_dict(self) -> dict:
+        return {n: {"agents": self.agents[n], "culled": self.culled[n], "frames": self.frames[n],
+                    "degraded_frames": self.degraded[n], "ms": percentiles(self.ms[n])} for n in self.names}
+
+
+class Scene:
+    """Agents dressed on the caller's thread; agents built and shapes refitted on one worker thread."""
+
+    def __init__(self, body, config: SceneConfig = SceneConfig(), library: GarmentLibrary | None = None,
+                 pose_factory=PoseState, on_error=None):
+        self.body, self.config = body, config
+        self.library = library if library is not None else GarmentLibrary(body)
+        self.pose_factory = pose_factory
+        self.agents: dict[str, Agent] = {}
+        self.viewer: Viewer | None = None
+        self.ticks = 0
+        self.level_cost: dict[int, float] = {}
+        self.stats = TierStats([t.name for t in config.lod.tiers])
+        self.on_error = on_error or (lambda message: None)
+        self._slots = 0
+        self._ready: list[Agent] = []
+        self._jobs: dict = {}  # name -> ("add", spec) | ("shape", beta), newest wins
+        self._cond = threading.Condition()
+        self._stop = False
+        self._busy = False
+        self._thread = threading.Thread(target=self._work, name="agentdress-scene-worker", daemon=True)
+        self._thread.start()
+
+    # ---- agents (building off the frame path) -----------------------------------------------------------------
+    def build_agent(self, spec: AgentSpec) -> Agent:
+        """Build an agent now (loads shared garment data on first use). Raises what the garment makers raise."""
+        tiers = self.config.lod.tiers
+        garments = {g.name: AgentGarment(self.library.get(g), tiers, self.config.fade_frames) for g in spec.garments}
+        if spec.publish_body:
+            garments["body"] = AgentGarment(self.library.get(GarmentSpec("body")), tiers, 0)
+        clamped = any([g.set_shape(np.asarray(spec.beta, dtype=np.float64)) for g in garments.values()])
+        with self._cond:
+            slot, self._slots = self._slots, self._slots + 1
+        return Agent(spec, garments, self.pose_factory(), slot, clamped)
+
+    def request_agent(self, spec: AgentSpec):
+        """Add (or rebuild) an agent off the frame path; a tick installs it when built."""
+        self._submit(spec.name, ("add", spec))
+
+    def request_shape(self, name: str, beta):
+        """Refit agent `name` to beta (6,) off the frame path (newest request wins)."""
+        self._submit(name, ("shape", tuple(float(b) for b in beta)))
+
+    def remove_agent(self, name: str) -> bool:
+        with self._cond:
+            self._jobs.pop(name, None)
+            self._ready = [a for a in self._ready if a.name != name]
+        return self.agents.pop(name, None) is not None
+
+    def install(self, agent: Agent):
+        old = self.agents.get(agent.name)
+        if old is not None:  # a rebuilt agent keeps its pose input
+            agent.pose = old.pose
+        self.agents[agent.name] = agent
+
+    def idle(self) -> bool:
+        """The worker has nothing left to do (built agents may still wait for the next tick to install them)."""
+        with self._cond:
+            return not self._jobs and not self._busy
+
+    def _submit(self, name, job):
+        with self._cond:
+            if job[0] == "shape" and self._jobs.get(name, ("",))[0] == "add":
+                spec = self._jobs[name][1]
+                job = ("add", AgentSpec(**{**spec.__dict__, "beta": job[1]}))
+            self._jobs[name] = job
+            self._cond.notify()
+
+    def _work(self):
+        while True:
+            with self._cond:
+                while not self._stop and not self._jobs:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                name = next(iter(self._jobs))
+                kind, arg = self._jobs.pop(name)
+                self._busy = True
+            try:
+                if kind == "add":
+                    agent = self.build_agent(arg)
+                    with self._cond:
+                        self._ready.append(agent)
+                else:
+                    agent = self.agents.get(name)
+                    if agent is not None:
+                        agent.clamped = agent.set_shape(np.asarray(arg))
+                        agent.shape_generation += 1
+                        agent.dirty = True
+            except Exception as error:  # a bad request never stops the scene: report, keep what runs
+                self.on_error(f"agent {name!r}: cannot {'build' if kind == 'add' else 'refit'}: {error}")
+            finally:
+                with self._cond:
+                    self._busy = False
+
+    def stop(self):
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self._thread.join(timeout=5.0)
+
+    # ---- viewer ---------------------------------------------------------------------------------------------
+    def set_viewer(self, viewer: Viewer | None):
+        self.viewer = viewer
+
+    # ---- the tick -------------------------------------------------------------------------------------------
+    def _estimate(self, agent: Agent, level: int) -> float:
+        cost = agent.cost_ms.get(level)
+        if cost is None:
+            cost = self.level_cost.get(level, DEFAULT_COST_MS)
+        if agent.fading() and agent.level is not None and agent.level != level:
+            cost += agent.cost_ms.get(agent.level, 0.0)
+        return cost
+
+    def _record(self, agent: Agent, level: int, ms: float):
+        a = self.config.cost_smoothing
+        old = agent.cost_ms.get(level)
+        agent.cost_ms[level] = ms if old is None else (1 - a) * old + a * ms
+        old = self.level_cost.get(level)
+        self.level_cost[level] = ms if old is None else (1 - a) * old + a * ms
+
+    def tick(self, publish=None, now_ns: int = 0) -> TickReport:
+        """One frame: decide, dress, publish. `publish(agent, frames, stamp_ns)` is timed as part of each agent."""
+        start = time.perf_counter()
+        with self._cond:
+            ready, self._ready = self._ready, []
+        for agent in ready:
+            self.install(agent)
+        config, lod, tiers = self.config, self.config.lod, self.config.lod.tiers
+        report = TickReport()
+        self.stats.agents.clear()
+        self.stats.culled.clear()
+        candidates, by_key = [], {}
+        viewer = self.viewer if config.lod_enabled else None
+        for agent in self.agents.values():
+            if viewer is not None:
+                d = agent.centre() - viewer.position
+                agent.distance = float(math.sqrt(d @ d))
+                agent.tier = lod.tier(agent.distance, agent.tier)
+                visible = lod.visible(viewer, agent.centre())
+            else:
+                agent.distance, agent.tier, visible = 0.0, 0, True
+            tier_name = tiers[agent.tier].name
+            self.stats.agents[tier_name] += 1
+            if not visible:
+                if agent.visible:
+                    agent.visible = False
+                self.stats.culled[tier_name] += 1
+                report.culled += 1
+                continue
+            if not agent.visible:  # back in view: dressed on this frame
+                agent.visible, agent.dirty = True, True
+                for garment in agent.garments.values():
+                    garment.reset()
+            changed = (agent.pose.version != agent.done_version or agent.dirty or agent.fading()
+                       or agent.tier != agent.tier_dressed)
+            every = tiers[agent.tier].every
+            due = every <= 1 or agent.waited > 0 or (self.ticks + agent.slot) % every == 0
+            if not changed or not due:
+                report.idle += 1
+                continue
+            costs = [self._estimate(agent, level) for level in range(len(tiers))]
+            candidate = Candidate(agent.name, agent.distance, agent.tier, costs, agent.waited)
+            candidates.append(candidate)
+            by_key[agent.name] = agent
+        decisions = schedule(candidates, config.budget_ms, config.protect_tiers)
+        decisions.sort(key=lambda d: by_key[d.key].distance)
+        tier_ms = Counter()
+        for decision in decisions:
+            agent = by_key[decision.key]
+            tier_name = tiers[decision.tier].name
+            if decision.degraded:
+                self.stats.degraded[tier_name] += 1
+            if decision.level is None:
+                agent.waited += 1
+                report.skipped.append(agent.name)
+                continue
+            report.estimate_ms += decision.estimate
+            t0 = time.perf_counter()
+            version = agent.pose.version
+            frames = agent.dress(decision.level)
+            if publish is not None:
+                publish(agent, frames, agent.pose.stamp_ns or now_ns)
+            ms = 1e3 * (time.perf_counter() - t0)
+            self._record(agent, decision.level, ms)
+            tier_ms[tier_name] += ms
+            self.stats.frames[tier_name] += 1
+            agent.level, agent.done_version, agent.dirty, agent.waited = decision.level, version, False, 0
+            agent.tier_dressed = decision.tier
+            report.dressed.append(agent.name)
+        for name in self.stats.names:
+            if tier_ms[name] or self.stats.agents[name]:
+                self.stats.ms[name].append(round(tier_ms[name], 4))
+        self.ticks += 1
+        report.ms = 1e3 * (time.perf_counter() - start)
+        return report
+
+    def status(self) -> dict:
+        return {"agents": len(self.agents), "tiers": self.stats.as_dict(),
+                "budget_ms": self.config.budget_ms, "lod": self.config.lod_enabled,
+                "viewer": None if self.viewer is None else [round(float(v), 3) for v in self.viewer.position],
+                "shared_garments": len(self.library)}

@@ -1,0 +1,60 @@
+"""The frame-budget scheduler: which agents to dress this tick, at which level, so the tick stays inside its budget.
+
+Pure: it sees estimated costs (measured by the scene, or injected by a test) and returns decisions; it never
+measures time itself. Rule: start every agent at its distance tier; while the estimate exceeds the budget, take the
+farthest agent that may be lowered and lower it one level at a time to the cheapest level, then skip it for this
+tick. Agents skipped on the ticks before are lowered only after those that were not (the longest waiting last), so
+over-budget far agents take turns: with room for half of them, each is updated on alternate ticks. Agents whose tier is below `protect`
+(the near ones) are never lowered or skipped, even when they alone exceed the budget.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+__all__ = ["Candidate", "Decision", "schedule"]
+
+
+@dataclass
+class Candidate:
+    key: object
+    distance: float
+    tier: int  # the level its distance asks for
+    costs: Sequence[float]  # estimated ms at each level (index = level; len = number of levels)
+    waited: int = 0  # ticks in a row this agent was skipped by the budget
+
+
+@dataclass
+class Decision:
+    key: object
+    level: int | None  # None: skipped this tick
+    degraded: bool  # lowered or skipped by the budget
+    tier: int
+    estimate: float  # ms the decision is expected to cost
+
+
+def schedule(candidates: Sequence[Candidate], budget_ms: float, protect: int = 1) -> list[Decision]:
+    """Decisions for every candidate (same order). `budget_ms` <= 0 disables the budget."""
+    level = {id(c): c.tier for c in candidates}
+    skipped: set[int] = set()
+    total = sum(c.costs[c.tier] for c in candidates)
+    if budget_ms > 0 and total > budget_ms:
+        lowerable = [c for c in candidates if c.tier >= protect]
+        lowerable.sort(key=lambda c: (c.waited, -c.distance))
+        for c in lowerable:
+            if total <= budget_ms:
+                break
+            while total > budget_ms and level[id(c)] < len(c.costs) - 1:
+                total += c.costs[level[id(c)] + 1] - c.costs[level[id(c)]]
+                level[id(c)] += 1
+            if total > budget_ms:
+                total -= c.costs[level[id(c)]]
+                skipped.add(id(c))
+    decisions = []
+    for c in candidates:
+        if id(c) in skipped:
+            decisions.append(Decision(c.key, None, True, c.tier, 0.0))
+        else:
+            lv = level[id(c)]
+            decisions.append(Decision(c.key, lv, lv != c.tier, c.tier, c.costs[lv]))
+    return decisions

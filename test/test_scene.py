@@ -1,0 +1,296 @@
+"""The crowd scene without DDS: tiers and hysteresis, the viewing cone, the budget scheduler's decisions (injected
+costs, no wall-clock margins), and a scene of agents on the shipped databases: shared data with a small state per
+agent, correct per-agent clouds, idle skip, culling, cross-fades between tiers, add and remove off the frame path."""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agentdress_ros.scene import (AgentSpec, Candidate, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer,
+                                  parse_tier, parse_tiers, schedule)
+from agentdress_ros.scene.lod import DEFAULT_TIERS, quaternion_forward
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+EXAMPLES = (("pose_model", "examples"),)
+GARMENTS = (GarmentSpec("tshirt", database=str(DATA / "tshirt_default.h5"), engine=EXAMPLES),
+            GarmentSpec("trousers", database=str(DATA / "trousers_default.h5"), engine=EXAMPLES))
+BETA0 = (0.5, 2.0 / 3.0, 0.5, 0.5, 0.5, 0.5)
+LOOK_X = (0.0, 0.0, 0.0, 1.0)  # identity orientation: looking along +x
+
+
+# ---- tiers -----------------------------------------------------------------------------------------------------
+def test_tier_lines_parse_and_print_back():
+    tiers = DEFAULT_TIERS
+    assert [t.name for t in tiers] == ["near", "mid", "far", "distant"]
+    assert tiers[1].engine == (("neighbors", 2), ("penetration", False)) and tiers[1].kind == "synthesis"
+    assert tiers[2].kind == "skinned" and math.isinf(tiers[3].max_distance) and tiers[3].every == 3
+    assert parse_tiers([t.text() for t in tiers]) == tiers
+
+
+@pytest.mark.parametrize("lines, words", [
+    (["a 3 synthesis", "b 2 skinned", "c inf skinned"], "increase"),
+    (["a 3 synthesis", "b 8 skinned"], "inf"),
+    (["a 3 synthesis", "a inf skinned"], "repeat"),
+    (["a inf skinned neighbors=2"], "synthesis tiers only"),
+    (["a inf synthesis colour=red"], "unknown key"),
+    (["a inf synthesis neighbors=0"], ">= 1"),
+    (["a inf fancy"], "kind"),
+    (["a -1 synthesis"], "> 0"),
+    (["a"], "needs"),
+])
+def test_bad_tier_lines_are_rejected_with_the_reason(lines, words):
+    with pytest.raises(ValueError, match=words):
+        parse_tiers(lines)
+
+
+def test_tier_hysteresis_holds_a_tier_near_its_boundary():
+    lod = LodPolicy(tiers=parse_tiers(["near 3 synthesis", "mid 8 synthesis", "far inf skinned"]), hysteresis=0.5)
+    assert lod.tier(2.0, None) == 0 and lod.tier(5.0, None) == 1
+    assert lod.tier(3.3, 0) == 0  # just outside: stays near
+    assert lod.tier(3.6, 0) == 1
+    assert lod.tier(2.7, 1) == 1  # just inside: stays mid
+    assert lod.tier(2.4, 1) == 0
+    assert lod.tier(2.0, 2) == 0  # a jump lands where it belongs
+    assert lod.tier(30.0, 0) == 2
+    assert lod.tier(8.2, 2) == 2 and lod.tier(7.4, 2) == 1
+
+
+def test_viewing_cone_with_margin_and_agent_radius():
+    lod = LodPolicy(fov_deg=90.0, margin_deg=10.0, agent_radius=1.0)
+    viewer = Viewer.from_pose((0.0, 0.0, 0.0), LOOK_X)
+    assert lod.visible(viewer, (10.0, 0.0, 0.0))
+    assert not lod.visible(viewer, (-10.0, 0.0, 0.0))
+    # 50 degrees off axis: outside 45 degrees but inside the margin
+    assert lod.visible(viewer, (10.0 * math.cos(math.radians(50)), 10.0 * math.sin(math.radians(50)), 0.0))
+    assert not lod.visible(viewer, (10.0 * math.cos(math.radians(70)), 10.0 * math.sin(math.radians(70)), 0.0))
+    assert lod.visible(viewer, (-0.5, 0.0, 0.0))  # within its own radius: always
+    assert not LodPolicy(cull=True).visible(viewer, (-10.0, 0.0, 0.0))
+    assert LodPolicy(cull=False).visible(viewer, (-10.0, 0.0, 0.0))
+
+
+def test_viewer_pose_orientation_and_fixed_offset():
+    yaw90 = (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4))
+    assert np.allclose(quaternion_forward(*yaw90), (0.0, 1.0, 0.0), atol=1e-12)
+    viewer = Viewer.from_pose((1.0, 0.0, 0.0), LOOK_X, offset=(10.0, 0.0, 1.0, math.pi / 2))
+    assert np.allclose(viewer.position, (10.0, 1.0, 1.0)) and np.allclose(viewer.forward, (0.0, 1.0, 0.0))
+    with pytest.raises(ValueError):
+        quaternion_forward(0.0, 0.0, 0.0, 0.0)
+
+
+# ---- the budget scheduler ---------------------------------------------------------------------------------------
+COSTS = [1.0, 0.6, 0.2, 0.2]  # ms per level: near, mid, far (skinned), distant (skinned)
+
+
+def _candidates(distances, tiers, skipped=()):
+    return [Candidate(f"a{i}", d, t, COSTS, int(f"a{i}" in skipped)) for i, (d, t) in enumerate(zip(distances, tiers))]
+
+
+def test_scheduler_keeps_every_agent_at_its_tier_inside_the_budget():
+    decisions = schedule(_candidates([1, 5, 12], [0, 1, 2]), budget_ms=8.0)
+    assert [(d.level, d.degraded) for d in decisions] == [(0, False), (1, False), (2, False)]
+
+
+def test_scheduler_lowers_the_farthest_first_and_never_the_near_ones():
+    distances = [1.0, 2.0, 4.0, 6.0, 7.0, 9.0]
+    tiers = [0, 0, 1, 1, 1, 2]
+    decisions = {d.key: d for d in schedule(_candidates(distances, tiers), budget_ms=3.6)}
+    assert decisions["a0"].level == 0 and decisions["a1"].level == 0  # near: untouched
+    assert decisions["a4"].level == 3 and decisions["a5"].level == 3 or decisions["a5"].level is None
+    assert decisions["a2"].level == 1 and not decisions["a2"].degraded  # nearest mid agent kept
+    total = sum(d.estimate for d in decisions.values())
+    assert total <= 3.6 + 1e-9
+    # The farthest is touched before any nearer one: lowering is monotone in distance.
+    lowered = [d.key for d in decisions.values() if d.degraded]
+    assert lowered and max(distances[int(k[1:])] for k in decisions if k not in lowered and tiers[int(k[1:])] > 0) \
+        <= min(distances[int(k[1:])] for k in lowered)
+
+
+def test_scheduler_skips_far_agents_on_alternate_ticks_when_lowering_is_not_enough():
+    distances = [1.0] + [20.0 + i for i in range(6)]
+    tiers = [0] + [3] * 6
+    budget = 1.0 + 3 * 0.2 + 1e-9  # the near agent and three far ones
+    first = schedule(_candidates(distances, tiers), budget)
+    skipped = {d.key for d in first if d.level is None}
+    assert len(skipped) == 3 and "a0" not in skipped
+    assert skipped == {"a4", "a5", "a6"}  # the farthest
+    second = schedule(_candidates(distances, tiers, skipped), budget)
+    assert {d.key for d in second if d.level is None} == {"a1", "a2", "a3"}  # the others' turn
+    assert all(d.degraded for d in first if d.level is None)
+
+
+def test_scheduler_never_drops_near_agents_even_over_budget():
+    decisions = schedule(_candidates([1.0, 1.5, 2.0], [0, 0, 0]), budget_ms=0.5)
+    assert all(d.level == 0 and not d.degraded for d in decisions)
+    assert all(d.level == 1 for d in schedule(_candidates([5.0, 6.0], [1, 1]), budget_ms=0.0))  # 0: no budget
+
+
+# ---- a scene on the shipped databases ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def walk():
+    from agentdress_ros.motion.procedural import make_motion
+
+    return make_motion("walk", 1.0)
+
+
+@pytest.fixture()
+def scene(body):
+    scene = Scene(body, SceneConfig(budget_ms=0.0, fade_frames=4))
+    yield scene
+    scene.stop()
+
+
+def _add(scene, name, beta=BETA0, **spec):
+    agent = scene.build_agent(AgentSpec(name, GARMENTS, tuple(beta), **spec))
+    scene.install(agent)
+    return agent
+
+
+class Published:
+    def __init__(self):
+        self.frames = {}
+
+    def __call__(self, agent, frames, stamp_ns):
+        self.frames[agent.name] = {g: v.copy() for g, v in frames.items()}
+
+
+def test_agents_share_garment_data_and_hold_a_small_state(scene, body, walk):
+    a = _add(scene, "a")
+    b = _add(scene, "b", (0.2, 0.5, 0.5, 0.8, 0.3, 0.5))
+    assert len(scene.library) == 2  # one loaded model per garment, whatever the number of agents
+    for name in ("tshirt", "trousers"):
+        ga, gb = a.garments[name].base, b.garments[name].base
+        assert ga.db is gb.db and ga.pose_model.canonical is gb.pose_model.canonical
+        assert ga._buffers[0] is not gb._buffers[0] and ga.pose_model.out is not gb.pose_model.out
+    own = a.memory_bytes(scene.library.models())
+    assert 0 < own < 5e6, own
+
+
+def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
+    from agentdress_ros.engine import EngineConfig, load_engine
+
+    shapes = {"a": BETA0, "b": (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)}
+    for name, beta in shapes.items():
+        _add(scene, name, beta)
+    published = Published()
+    rot, root = walk.rotvecs, walk.root_translation
+    scene.agents["a"].pose.set(rot[3], root[3])
+    scene.agents["b"].pose.set(rot[17], root[17] + (2.0, 0.0, 0.0))
+    scene.tick(published)
+    assert set(published.frames) == {"a", "b"}
+    for name, frame in ((("a", 3)), ("b", 17)):
+        engine = load_engine(DATA / "tshirt_default.h5", EngineConfig(pose_model="examples"), body)
+        engine.set_shape(shapes[name])
+        offset = (2.0, 0.0, 0.0) if name == "b" else (0.0, 0.0, 0.0)
+        expected = engine.synthesize(rot[frame], root[frame] + offset)
+        assert np.allclose(published.frames[name]["tshirt"], expected, atol=1e-5)
+    assert not np.allclose(published.frames["a"]["tshirt"], published.frames["b"]["tshirt"], atol=1e-2)
+
+
+def test_idle_agents_cost_nothing(scene, walk):
+    agent = _add(scene, "a")
+    agent.pose.set(walk.rotvecs[0], walk.root_translation[0])
+    assert scene.tick().dressed == ["a"]
+    report = scene.tick()
+    assert report.dressed == [] and report.idle == 1
+    agent.pose.set(walk.rotvecs[1], walk.root_translation[1])
+    assert scene.tick().dressed == ["a"]
+
+
+def test_an_agent_out_of_view_is_not_dressed_and_comes_back_on_the_frame_it_returns(scene, walk):
+    agent = _add(scene, "a")
+    agent.pose.set(walk.rotvecs[0], (5.0, 0.0, 0.0))
+    scene.set_viewer(Viewer.from_pose((0.0, 0.0, 1.6), LOOK_X))
+    assert scene.tick().dressed == ["a"]
+    scene.set_viewer(Viewer.from_pose((0.0, 0.0, 1.6), (0.0, 0.0, 1.0, 0.0)))  # turned around: looking along -x
+    for i in range(3):
+        agent.pose.set(walk.rotvecs[i + 1], (5.0, 0.0, 0.0))
+        report = scene.tick()
+        assert report.dressed == [] and report.culled == 1
+    scene.set_viewer(Viewer.from_pose((0.0, 0.0, 1.6), LOOK_X))
+    assert scene.tick().dressed == ["a"]  # back in view: dressed at once, even without a new pose
+    assert scene.status()["tiers"]["mid"]["agents"] == 1
+
+
+def test_a_tier_change_cross_fades_instead_of_popping(scene, walk):
+    agent = _add(scene, "a")
+    published = Published()
+    pose = walk.rotvecs[5]
+    scene.set_viewer(Viewer.from_pose((-2.0, 0.0, 0.9), LOOK_X))
+    agent.pose.set(pose, (0.0, 0.0, 0.0))
+    scene.tick(published)
+    near = published.frames["a"]["tshirt"]
+    assert agent.level == 0
+    scene.set_viewer(Viewer.from_pose((-12.0, 0.0, 0.9), LOOK_X))  # 12 m: the skinned tier
+    frames = []
+    for _ in range(6):
+        scene.tick(published)
+        frames.append(published.frames["a"]["tshirt"])
+    far = agent.garments["tshirt"].base.skin(pose, np.zeros(3)).copy()
+    step = np.abs(far - near).max()
+    assert step > 0.01  # the levels differ visibly...
+    jumps = [np.abs(b - a).max() for a, b in zip([near] + frames, frames)]
+    assert max(jumps) < 0.3 * step + 1e-6  # ...but no frame jumps by more than a fifth-ish of it
+    assert np.allclose(frames[-1], far, atol=1e-5)  # and it lands on the far level
+    assert scene.status()["tiers"]["far"]["agents"] == 1
+
+
+def test_budget_holds_with_artificially_expensive_agents(body, walk):
+    """Costs injected as estimates (smoothing 0 keeps them): the scheduler's decisions are checked, not wall time."""
+    scene = Scene(body, SceneConfig(budget_ms=3.5, cost_smoothing=0.0, fade_frames=0))
+    try:
+        distances = [1.5, 2.0, 5.0, 6.0, 25.0, 30.0, 35.0, 40.0]
+        for i, x in enumerate(distances):
+            agent = _add(scene, f"a{i}")
+            agent.cost_ms = {0: 1.0, 1: 0.8, 2: 0.5, 3: 0.5}
+        scene.set_viewer(Viewer.from_pose((0.0, 0.0, 0.9), LOOK_X))
+        dressed_count = {f"a{i}": 0 for i in range(len(distances))}
+        for t in range(9):
+            for i, x in enumerate(distances):
+                scene.agents[f"a{i}"].pose.set(walk.rotvecs[t], (x, 0.0, 0.0))
+            report = scene.tick()
+            assert {"a0", "a1"} <= set(report.dressed)  # the near ones every tick
+            assert report.estimate_ms <= 3.5 + 1e-9
+            for name in report.dressed:
+                dressed_count[name] += 1
+        tiers = scene.status()["tiers"]
+        assert tiers["near"]["degraded_frames"] == 0
+        assert tiers["distant"]["degraded_frames"] + tiers["mid"]["degraded_frames"] > 0
+        assert all(count >= 2 for count in dressed_count.values()), dressed_count  # nobody starves
+    finally:
+        scene.stop()
+
+
+def test_agents_are_added_and_refitted_off_the_frame_path_and_removed(scene, walk):
+    scene.request_agent(AgentSpec("late", GARMENTS, BETA0))
+    deadline = time.monotonic() + 60.0
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert "late" not in scene.agents  # installed by the next tick, on the frame thread
+    scene.tick()
+    agent = scene.agents["late"]
+    before = agent.garments["tshirt"].base.shape_report.effective.copy()
+    scene.request_shape("late", (0.3, 0.5, 0.5, 0.7, 0.5, 0.5))
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    after = agent.garments["tshirt"].base.shape_report.effective
+    assert not np.allclose(before, after) and agent.dirty
+    mid = agent.garments["tshirt"]._levels[1][1]
+    assert mid._state is agent.garments["tshirt"].base._state  # every tier follows the one shape state
+    assert scene.tick().dressed == ["late"]
+    assert scene.remove_agent("late") and "late" not in scene.agents
+    assert scene.tick().dressed == []
+    errors = []
+    scene.on_error = errors.append
+    scene.request_agent(AgentSpec("broken", (GarmentSpec("tshirt", database="/nonexistent.h5"),)))
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert errors and "broken" in errors[0] and "nonexistent" in errors[0]
+
+
+def test_parse_tier_names_the_line():
+    with pytest.raises(ValueError, match="'x 3'"):
+        parse_tier("x 3")
