@@ -1,8 +1,9 @@
 """The web viewer end to end: node, demo and viewer as three processes, the page loaded in headless Chromium.
 
-Checks that the screenshot is not blank (the dressed agent covers a few percent of the window) and that two
-screenshots taken while the demo walks differ. Skipped when no Chromium is installed (Debian: `apt-get install -y
-chromium`; .ci/run should install it).
+Chromium renders WebGL in software (SwiftShader through ANGLE), so the page's WebGL path is the one drawn: the page
+must report WebGL (not its 2D-canvas fallback), the screenshot must not be blank (the dressed agent covers a few
+percent of the window) and two screenshots taken while the demo walks must differ. Skipped, with the reason, when no
+Chromium is installed (Debian: `apt-get install -y chromium`); .ci/run installs it or fails.
 """
 from __future__ import annotations
 
@@ -32,12 +33,18 @@ def _get_json(url: str):
         return json.loads(response.read())
 
 
+def _chromium(url: str, profile, *action) -> subprocess.CompletedProcess:
+    """Headless Chromium on `url` with WebGL in software (SwiftShader), doing `action` (--screenshot=..., --dump-dom)
+    after a second of virtual time."""
+    args = [CHROMIUM, "--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+            "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update",
+            "--disable-sync", f"--user-data-dir={profile}", "--window-size=800,600", "--virtual-time-budget=1000",
+            *action, url]
+    return subprocess.run(args, capture_output=True, text=True, timeout=90)
+
+
 def _screenshot(url: str, path, profile) -> np.ndarray:
-    args = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-            f"--user-data-dir={profile}", f"--screenshot={path}", "--window-size=800,600",
-            "--virtual-time-budget=1000", url]
-    proc = subprocess.run(args, capture_output=True, text=True, timeout=90)
+    proc = _chromium(url, profile, f"--screenshot={path}")
     assert path.is_file(), f"chromium wrote no screenshot ({proc.returncode}):\n{proc.stderr[-2000:]}"
     return np.asarray(Image.open(path).convert("RGB")).astype(np.int16)
 
@@ -70,6 +77,10 @@ def test_viewer_shows_the_moving_dressed_agent(tmp_path):
         else:
             pytest.fail(f"viewer state {state}\n" + "\n".join(f"{n}: {c.output()}" for n, c in children.items()))
 
+        page = _chromium(url, tmp_path / "profile0", "--dump-dom")
+        info = re.search(r'<div id="info">([^<]*)</div>', page.stdout)
+        assert info, f"no status line in the page ({page.returncode}):\n{page.stdout[-2000:]}{page.stderr[-2000:]}"
+        assert "(WebGL)" in info.group(1), f"the page did not draw with WebGL: {info.group(1)!r}"
         first = _screenshot(url, tmp_path / "first.png", tmp_path / "profile1")
         # The walk loops every 1.1 s in 33 poses, so a later screenshot can, rarely, land on the same pose: retry
         # (after a random part of the loop) until one differs.
