@@ -3,9 +3,9 @@
 For every configuration (a row of the trade table) and in one run: the mean and 95th-percentile vertex error (cm)
 against the held-out drapes (evaluate.testset), the fraction of garment vertices inside the body, the milliseconds
 per frame on a held-out motion (one thread, the best of the per-pass medians, passes interleaved across the rows),
-and the temporal jitter on that motion (mean vertex acceleration, mm per frame^2). Each mean error comes with a 95 % bootstrap interval over the test cases (the
-(pose, shape) pairs resampled, the same resamples for every row); rows whose intervals overlap are
-indistinguishable on this test set. Writes report.json, trade.md and PNG plots (Pareto front, error vs anchors as
+and the temporal jitter on that motion (mean vertex acceleration, mm per frame^2). Each mean error comes with a
+95 % bootstrap interval over the test cases (the (pose, shape) pairs resampled, the same resamples for every row);
+rows whose intervals overlap are indistinguishable on this test set. Writes report.json, trade.md and PNG plots (Pareto front, error vs anchors as
 in the paper's Fig. 9, error vs distance of the shape from beta0) and a stability report of extreme inputs through
 the full pipeline. Rows that lose to the skinned baseline are listed, not hidden.
 """
