@@ -5,9 +5,10 @@ against the held-out drapes (evaluate.testset), the fraction of garment vertices
 per frame on a held-out motion (one thread, the best of the per-pass medians, passes interleaved across the rows),
 and the temporal jitter on that motion (mean vertex acceleration, mm per frame^2). Each mean error comes with a
 95 % bootstrap interval over the test cases (the (pose, shape) pairs resampled, the same resamples for every row);
-rows whose intervals overlap are indistinguishable on this test set. Writes report.json, trade.md and PNG plots (Pareto front, error vs anchors as
-in the paper's Fig. 9, error vs distance of the shape from beta0) and a stability report of extreme inputs through
-the full pipeline. Rows that lose to the skinned baseline are listed, not hidden.
+rows whose intervals overlap are indistinguishable on this test set. Writes report.json, trade.md and PNG plots
+(Pareto front, error vs anchors as in the paper's Fig. 9, error vs distance of the shape from beta0) and a
+stability report of extreme inputs through the full pipeline. Rows that lose to the skinned baseline are listed,
+not hidden.
 """
 from __future__ import annotations
 
@@ -317,7 +318,8 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         "indistinguishable_from_lowest": [r.name for r in rows
                                           if overlaps(r.results["error_mean_ci_cm"], intervals[best])],
         "loses_to_baseline": [r.name for r in rows[1:] if r.results["vs_baseline"] == "worse"],
-        "indistinguishable_from_baseline": [r.name for r in rows[1:] if r.results["vs_baseline"] == "indistinguishable"],
+        "indistinguishable_from_baseline": [r.name for r in rows[1:]
+                                            if r.results["vs_baseline"] == "indistinguishable"],
         "stability": stability,
     }
     out_dir = Path(out_dir)
