@@ -28,6 +28,7 @@ PASSTHROUGH = (
     ("view", ".ros.viewer", "view_main", "web viewer of the node's garments"),
     ("run", ".ros.run_all", "run_main", "node + demo + viewer together (what `make run` starts)"),
     ("eval", ".evaluate.evaluate", "main", "speed vs accuracy against held-out newton drapes (trade table, plots)"),
+    ("sequences", ".build.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),
 )
 
 

@@ -151,3 +151,70 @@ def test_bad_inputs_are_rejected_before_simulating():
         drape(np.full((3, 3), np.nan), np.array([[0, 1, 2]]), vertices, np.array([[0, 1, 2]]))
     with pytest.raises(ValueError, match="pinned"):
         drape(vertices, np.array([[0, 1, 2]]), vertices, np.array([[0, 1, 2]]), pinned=[3])
+
+
+@pytest.fixture(scope="module")
+def arms_down(body):
+    """A 400-vertex T-shirt and an arms-down pose from a training clip (08_04, slow walk) at beta0:
+    (garment, pose (B, 3), rest garment (V, 3), skinned garment (V, 3), posed body (N, 3), body faces (G, 3))."""
+    from agentdress_ros.build.anchors import canonical_poses
+    from agentdress_ros.garment import make_garment
+    from agentdress_ros.motion.retarget import load_cmu_motion
+    from agentdress_ros.sim.posing import posed_surfaces, visible_body
+
+    from .conftest import shared_path
+
+    garment = make_garment("tshirt", body, n_vertices=400)
+    shape = body.shape()
+    motion = load_cmu_motion(shared_path("mocap", "cmu", "08_04.bvh"), shape.heads, shape.tails)
+    pose = canonical_poses(motion.rotvecs[232:233])[0]
+    bodies, skinned = posed_surfaces(body, garment, shape, pose[None])
+    return garment, pose, garment.rest_vertices(body, shape), skinned[0], bodies[0], visible_body(body)[1]
+
+
+@needs_newton
+def test_animated_collider_carries_the_cloth_out_of_where_skinning_puts_it_inside(body, arms_down):
+    """Skinning to an arms-down pose folds the shirt into the armpit (vertices inside the body); carrying the body
+    from rest into the pose under the cloth leaves those vertices outside it."""
+    from agentdress_ros.garment.inside import inside_report
+    from agentdress_ros.sim import drape
+    from agentdress_ros.sim.posing import posed_surfaces, ramp_poses
+
+    garment, pose, rest, skinned, posed_body, faces = arms_down
+    started_inside = inside_report(skinned, posed_body, faces)["inside"]
+    assert started_inside.sum() >= 3
+    path, _ = posed_surfaces(body, garment, body.shape(), ramp_poses(pose, 12))
+    result = drape(rest, garment.faces, posed_body, faces, DrapeSettings(max_frames=60), rest_vertices=rest,
+                   body_path=path)
+    assert result.ramp_frames == 12 and np.isfinite(result.vertices).all()
+    ended = inside_report(result.vertices, posed_body, faces)
+    assert ended["inside"][started_inside].sum() <= started_inside.sum() // 3, ended["inside_count"]
+    assert ended["truly_inside_count"] == 0
+
+
+@needs_newton
+def test_a_resumed_sequence_gives_the_frames_of_an_uninterrupted_run(body, arms_down, tmp_path):
+    from agentdress_ros.motion.skeleton import Motion
+    from agentdress_ros.sim.sequence import SequenceSettings, load_sequence, simulate_sequence
+
+    garment, pose, *_ = arms_down
+    t = np.linspace(0.0, 1.0, 7)[:, None, None]
+    motion = Motion(rotvecs=t * pose[None], root_translation=np.c_[np.zeros(7), -0.3 * t[:, 0], np.zeros(7)],
+                    fps=30.0, name="swing")
+    settings = SequenceSettings(chunk_frames=3, ramp_frames=4, settle_frames=10,
+                                drape=DrapeSettings(substeps=4, iterations=2))
+    whole = simulate_sequence(motion, garment, body.shape().beta, tmp_path / "whole", settings, body=body,
+                              progress=False)
+    assert whole["chunks"] == 3 and whole["frames"] == 7
+    first = simulate_sequence(motion, garment, body.shape().beta, tmp_path / "resumed", settings, body=body,
+                              max_chunks=1, progress=False)
+    assert first["chunks"] == 1
+    rest_of_it = simulate_sequence(motion, garment, body.shape().beta, tmp_path / "resumed", settings, body=body,
+                                   progress=False)
+    assert rest_of_it["chunks"] == 2
+    a, b = load_sequence(tmp_path / "whole"), load_sequence(tmp_path / "resumed")
+    assert np.array_equal(a["positions"], b["positions"])
+    assert np.isfinite(a["positions"]).all() and a["positions"].shape == (7, garment.n_vertices, 3)
+    np.testing.assert_allclose(a["root_velocity"][:, 1], -0.3 * 30.0 / 6.0, rtol=1e-5)
+    # the cloth moved with the body (root translation of 30 cm)
+    assert abs(a["positions"][-1, :, 1].mean() - a["positions"][0, :, 1].mean() + 0.3) < 0.05

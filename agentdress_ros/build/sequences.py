@@ -1,0 +1,201 @@
+"""Dynamic training sequences: every training clip simulated at beta0, per garment, resumable, on Dask, packed.
+
+    agentdress sequences --garment tshirt --clips ../shared/mocap/cmu/*.bvh --out out/sequences [--workers 1]
+    agentdress sequences --garment tshirt --out out/sequences --pack data/tshirt_sequences.npz [--components 96]
+
+Each clip runs as one job (`sim.sequence.simulate_sequence`, checkpointed every second of motion) in
+`<out>/<garment>/<clip>/`; a rerun continues every clip after its last complete chunk. Test clips of
+../shared/mocap/README.md are refused by name: they hold the held-out ground truth.
+
+The pack stores what a learned pose model trains on, compactly: every frame's garment unposed to the rest frame
+with beta0's bones (Santesteban et al. 2019, Eq. 5: delta = W^-1(S) - T) as PCA coefficients (float16) plus the
+basis (float32) and the rest garment, beside the frame's pose, root translation and root velocity.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+# ../shared/mocap/README.md: never part of a build's pose set or of any training data.
+TEST_CLIPS = ("02_01", "02_08", "05_07", "05_12", "05_14", "06_04", "06_14", "07_12", "08_10", "09_01")
+
+
+def check_training_clips(clips) -> list[Path]:
+    """The clip paths, or ValueError naming any test clip among them."""
+    paths = [Path(c) for c in clips]
+    held_out = sorted(p.stem for p in paths if p.stem in TEST_CLIPS)
+    if held_out:
+        raise ValueError(f"test clips cannot be training data: {', '.join(held_out)}")
+    return paths
+
+
+@dataclass(frozen=True)
+class SequenceJob:
+    clip: str  # a CMU .bvh path
+    garment: str
+    garment_vertices: int
+    beta: tuple
+    folder: str
+    settings: dict  # SequenceSettings fields, with its `drape` as a dict of DrapeSettings fields
+
+
+def _settings(fields: dict):
+    from ..sim.sequence import DrapeSettings, SequenceSettings
+
+    fields = dict(fields)
+    return SequenceSettings(**{**fields, "drape": DrapeSettings(**fields.get("drape", {}))})
+
+
+def run_sequence_job(job: SequenceJob) -> dict:
+    """Simulate (or finish) one clip; returns its statistics."""
+    from ..motion.retarget import load_cmu_motion
+    from ..sim.sequence import simulate_sequence
+    from .jobs import _body_and_garment
+
+    body, garment = _body_and_garment(job.garment, job.garment_vertices)
+    shape = body.shape(np.asarray(job.beta))
+    motion = load_cmu_motion(job.clip, shape.heads, shape.tails)
+    stats = simulate_sequence(motion, garment, shape.beta, job.folder, _settings(job.settings), body=body,
+                              progress=False)
+    return {"clip": Path(job.clip).stem, **stats}
+
+
+def run_sequences(jobs, workers: int = 1, scheduler: str | None = None, progress: bool = True) -> list[dict]:
+    """Run sequence jobs in this process (workers=0), on local worker processes, or on a Dask cluster."""
+    from tqdm import tqdm
+
+    results = []
+    bar = tqdm(total=len(jobs), desc="sequences", unit="clip", disable=not progress)
+    if workers == 0 and scheduler is None:
+        for job in jobs:
+            results.append(run_sequence_job(job))
+            bar.update()
+    else:
+        import logging
+
+        from dask.distributed import Client, LocalCluster, as_completed
+
+        cluster = None if scheduler else LocalCluster(n_workers=max(1, workers), threads_per_worker=1,
+                                                      processes=True, dashboard_address=":0",
+                                                      silence_logs=logging.WARNING)
+        with Client(scheduler or cluster) as client:
+            futures = [client.submit(run_sequence_job, job, key=f"sequence-{Path(job.folder).name}", pure=False)
+                       for job in jobs]
+            for future in as_completed(futures):
+                results.append(future.result())
+                bar.update()
+        if cluster is not None:
+            cluster.close()
+    bar.close()
+    return results
+
+
+def pack_sequences(root, garment_name: str, garment_vertices: int, out, components: int = 96,
+                   beta=None) -> dict:
+    """Pack every sequence under `root/<garment>/` into one .npz (see the module docstring); returns a report with
+    the pack's size and the PCA reconstruction error in the rest frame (mean and max vertex distance, metres)."""
+    from ..body.model import REFERENCE_SHAPE
+    from ..engine.kernels import unpose
+    from ..sim.sequence import load_sequence
+    from .jobs import _body_and_garment
+
+    body, garment = _body_and_garment(garment_name, garment_vertices)
+    shape = body.shape(REFERENCE_SHAPE if beta is None else beta)
+    rest = garment.rest_vertices(body, shape)
+    skin_w = garment.skin_weights.astype(np.float64)
+    folders = sorted(p for p in (Path(root) / garment_name).iterdir() if any(p.glob("chunk_*.npz")))
+    offsets, poses, roots, velocities, clip_ids, frame_ids, names = [], [], [], [], [], [], []
+    cloth_speed, body_speed = [], []
+    unposed = np.empty_like(rest)
+    for c, folder in enumerate(folders):
+        data = load_sequence(folder)
+        names.append(folder.name)
+        for positions, rotvecs, root in zip(data["positions"], data["rotvecs"], data["root_translation"]):
+            transforms, _ = body.pose(shape, rotvecs.astype(np.float64), root.astype(np.float64))
+            unpose(positions.astype(np.float64), garment.skin_indices, skin_w, transforms, unposed)
+            offsets.append((unposed - rest).ravel())
+        poses.append(data["rotvecs"])
+        roots.append(data["root_translation"])
+        velocities.append(data["root_velocity"])
+        cloth_speed.append(data["cloth_speed"])
+        body_speed.append(data["body_speed"])
+        clip_ids.append(np.full(len(data["frames"]), c, dtype=np.int16))
+        frame_ids.append(data["frames"].astype(np.int32))
+    matrix = np.asarray(offsets, dtype=np.float64)
+    mean = matrix.mean(axis=0)
+    k = min(components, len(matrix) - 1, matrix.shape[1])
+    _, singular, basis = np.linalg.svd(matrix - mean, full_matrices=False)
+    basis = basis[:k]
+    coefficients = (matrix - mean) @ basis.T
+    scale = np.abs(coefficients).max(axis=0) + 1e-12  # float16 keeps ~3 digits of each coefficient's range
+    coefficients16 = (coefficients / scale).astype(np.float16)
+    restored = (coefficients16.astype(np.float64) * scale) @ basis + mean
+    error = np.linalg.norm((restored - matrix).reshape(len(matrix), -1, 3), axis=2)
+    out = Path(out)
+    partial = out.with_name(out.name + ".partial")
+    with open(partial, "wb") as handle:
+        np.savez_compressed(
+            handle, garment=np.array(garment_name), garment_vertices=np.array(garment_vertices),
+            beta=shape.beta, rest=rest.astype(np.float32), faces=garment.faces.astype(np.int32),
+            mean=mean.astype(np.float32), basis=basis.astype(np.float32), scale=scale.astype(np.float32),
+            coefficients=coefficients16, rotvecs=np.concatenate(poses).astype(np.float32),
+            root_translation=np.concatenate(roots).astype(np.float32),
+            root_velocity=np.concatenate(velocities).astype(np.float32),
+            cloth_speed=np.concatenate(cloth_speed).astype(np.float32),
+            body_speed=np.concatenate(body_speed).astype(np.float32),
+            clip=np.concatenate(clip_ids), frame=np.concatenate(frame_ids), clips=np.array(names))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial.replace(out)
+    explained = float((singular[:k] ** 2).sum() / (singular ** 2).sum())
+    return {"pack": str(out), "bytes": out.stat().st_size, "clips": len(folders), "frames": len(matrix),
+            "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean()),
+            "rest_frame_error_max_m": float(error.max()),
+            "max_cloth_speed": float(np.concatenate(cloth_speed).max()),
+            "max_body_speed": float(np.concatenate(body_speed).max())}
+
+
+def load_sequence_pack(path) -> dict:
+    """A pack's arrays with the rest-frame offsets restored: offsets (F, V, 3) float32 and the per-frame fields."""
+    with np.load(path) as data:
+        arrays = {name: data[name] for name in data.files}
+    coefficients = arrays["coefficients"].astype(np.float32) * arrays["scale"]
+    offsets = coefficients @ arrays["basis"] + arrays["mean"]
+    arrays["offsets"] = offsets.reshape(len(offsets), -1, 3)
+    return arrays
+
+
+def main(argv=None) -> int:
+    from ..body.model import REFERENCE_SHAPE
+    from ..sim.sequence import SequenceSettings
+
+    parser = argparse.ArgumentParser(prog="agentdress sequences", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--garment", default="tshirt")
+    parser.add_argument("--vertices", type=int, default=1200)
+    parser.add_argument("--clips", nargs="*", default=[], help="training CMU .bvh clips (test clips are refused)")
+    parser.add_argument("--out", default="out/sequences", help="folder of the resumable sequence chunks")
+    parser.add_argument("--workers", type=int, default=1, help="local worker processes (0: in this process)")
+    parser.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
+    parser.add_argument("--settings", default="", help="JSON object of SequenceSettings overrides")
+    parser.add_argument("--pack", default=None, help="pack the finished sequences into this .npz")
+    parser.add_argument("--components", type=int, default=96, help="PCA components of the pack")
+    args = parser.parse_args(argv)
+    settings = asdict(SequenceSettings())
+    settings.update(json.loads(args.settings) if args.settings else {})
+    clips = check_training_clips(args.clips)
+    # shortest clips first: the most finished clips early, whatever the time available
+    clips.sort(key=lambda p: p.stat().st_size)
+    jobs = [SequenceJob(str(c), args.garment, args.vertices, tuple(REFERENCE_SHAPE), str(Path(args.out) /
+                        args.garment / c.stem), settings) for c in clips]
+    results = run_sequences(jobs, workers=args.workers, scheduler=args.scheduler) if jobs else []
+    report = {"sequences": results}
+    if args.pack:
+        report["pack"] = pack_sequences(args.out, args.garment, args.vertices, args.pack, args.components)
+    json.dump(report, sys.stdout, indent=1)
+    print()
+    return 0

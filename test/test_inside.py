@@ -1,0 +1,68 @@
+"""Inside-the-body test by generalised winding number (agentdress_ros.garment.inside), against analytic truth."""
+import numpy as np
+import trimesh
+
+from agentdress_ros.garment.inside import inside_report, self_overlapping_vertices, winding_numbers
+
+
+def _sphere(centre, radius=1.0):
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    return mesh.vertices + np.asarray(centre, dtype=float), mesh.faces
+
+
+def test_winding_number_is_one_inside_and_zero_outside_a_sphere():
+    vertices, faces = _sphere((0.0, 0.0, 0.0))
+    points = np.array([[0.0, 0.0, 0.0], [0.5, 0.2, -0.3], [0.0, 0.0, 0.95], [1.05, 0.0, 0.0], [3.0, 2.0, 1.0]])
+    w = winding_numbers(points, vertices, faces)
+    np.testing.assert_allclose(w[:3], 1.0, atol=1e-6)
+    np.testing.assert_allclose(w[3:], 0.0, atol=1e-6)
+
+
+def test_winding_number_counts_overlapping_parts_and_flags_the_overlap():
+    """Two interpenetrating spheres in one mesh (a skinned arm inside the torso): w = 2 in the overlap, and exactly
+    the vertices of each sphere that lie inside the other are self-overlapping."""
+    va, fa = _sphere((0.0, 0.0, 0.0))
+    vb, fb = _sphere((1.5, 0.0, 0.0))
+    vertices = np.vstack([va, vb])
+    faces = np.vstack([fa, fb + len(va)])
+    w = winding_numbers([[0.75, 0.0, 0.0], [-0.5, 0.0, 0.0], [2.0, 0.0, 0.0], [0.75, 0.0, 3.0]], vertices, faces)
+    np.testing.assert_allclose(w, [2.0, 1.0, 1.0, 0.0], atol=1e-6)
+    overlap = self_overlapping_vertices(vertices, faces)
+    expected = np.concatenate([np.linalg.norm(va - (1.5, 0.0, 0.0), axis=1) < 1.0,
+                               np.linalg.norm(vb, axis=1) < 1.0])
+    # vertices within the lift distance (1 mm) of the other surface may go either way
+    near = np.abs(np.concatenate([np.linalg.norm(va - (1.5, 0.0, 0.0), axis=1),
+                                  np.linalg.norm(vb, axis=1)]) - 1.0) < 2e-3
+    assert np.array_equal(overlap[~near], expected[~near])
+    assert expected.sum() > 20
+
+
+def test_inside_report_separates_trapped_from_truly_inside_points():
+    va, fa = _sphere((0.0, 0.0, 0.0))
+    vb, fb = _sphere((1.5, 0.0, 0.0))
+    vertices = np.vstack([va, vb])
+    faces = np.vstack([fa, fb + len(va)])
+    points = np.array([[0.75, 0.3, 0.0],  # in the overlap, next to overlapping surface: trapped
+                       [-0.6, 0.0, 0.0],  # deep in the left sphere, far from the overlap: truly inside
+                       [0.0, 0.0, 1.2]])  # outside
+    report = inside_report(points, vertices, faces, radius=0.3)  # unit spheres: vertices ~0.15 apart
+    assert report["inside"].tolist() == [True, True, False]
+    assert report["truly_inside"].tolist() == [False, True, False]
+    assert (report["inside_count"], report["overlap_count"], report["truly_inside_count"]) == (2, 1, 1)
+
+
+def test_anny_at_rest_does_not_overlap_itself_where_garments_go_but_arms_down_it_does(body):
+    from agentdress_ros.sim.posing import visible_body
+
+    ids, faces = visible_body(body)
+    shape = body.shape()
+    rest = body.posed_vertices(shape, body.pose(shape, np.zeros((body.n_bones, 3)))[0])[ids]
+    # The template itself overlaps only where no garment goes (inside the mouth, between the toes).
+    garment_bones = [i for i, name in enumerate(body.bone_names) if "Toe" not in name and name != "Head"]
+    on_garment_bones = np.isin(body.skin_indices[ids, 0], garment_bones)
+    assert (self_overlapping_vertices(rest, faces) & on_garment_bones).sum() == 0
+    pose = np.zeros((body.n_bones, 3))
+    for side, sign in (("Left", 1.0), ("Right", -1.0)):  # arms pressed down against the torso
+        pose[body.bone_index(f"{side}Arm")] = (0.0, sign * 0.9, 0.0)
+    posed = body.posed_vertices(shape, body.pose(shape, pose)[0])[ids]
+    assert (self_overlapping_vertices(posed, faces) & on_garment_bones).sum() > 20
