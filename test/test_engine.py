@@ -235,3 +235,43 @@ def test_anchor_subset_restricts_the_examples_and_the_pose_model_keeps_its_own_k
     # a database without anchor drapes among its examples cannot run the examples pose model on an anchor subset
     with pytest.raises(ValueError, match="has none"):
         Engine(db, body, EngineConfig(pose_model="examples", anchors=2))
+
+
+def test_garment_and_body_are_fitted_to_the_same_shape_beyond_the_training_range(body):
+    """Age and proportions were trained at beta0 alone (zero-width range): only the shape models are held there;
+    the body and the garment's fit (the surface binding the residual basis adds back) follow the requested shape,
+    so the garment's clearance from the skin stays as at beta0 (the engine held the whole garment at beta0 before:
+    median 27 cm off on this young, long-limbed body)."""
+    from pathlib import Path
+
+    from agentdress_ros.garment.binding import signed_clearance
+    from agentdress_ros.ros.garment_models import make_garment_model
+
+    path = Path(__file__).resolve().parents[1] / "data" / "tshirt_default.h5"
+    if not path.is_file():
+        pytest.skip(f"no shipped database {path}")
+    engine = load_engine(path, EngineConfig(pose_model="examples"), body=body)
+    pose = engine.db.anchor_poses[0]
+    young = np.array(engine.db.beta0)
+    young[[1, 5]] = 0.2, 0.9  # age, proportions: outside their training range [2/3, 2/3], [0.5, 0.5]
+
+    def clearance(beta):
+        report = engine.set_shape(beta)
+        engine.reset()
+        garment = np.asarray(engine.synthesize(pose), dtype=np.float64)
+        shape = body.shape(beta)
+        skin = body.posed_vertices(shape, body.pose(shape, pose)[0])
+        return signed_clearance(garment, skin, body.body_faces), report
+
+    at_beta0, _ = clearance(engine.db.beta0)
+    moved, report = clearance(young)
+    assert report.clamped_names == () and report.held_names == ("age", "proportions")
+    np.testing.assert_array_equal(report.effective, young)
+    np.testing.assert_array_equal(report.model_beta[[1, 5]], engine.db.beta0[[1, 5]])
+    change = np.abs(moved - at_beta0)
+    assert np.median(change) < 5e-3 and np.percentile(change, 95) < 25e-3, (np.median(change), change.max())
+
+    model = make_garment_model("tshirt", path, body=body, beta=young)
+    assert model.shape_limits == {"clamped": [], "held": ["age", "proportions"]}
+    model.set_shape(np.full(6, 1.5))  # outside [0, 1]: clamped for body and garment alike
+    assert model.shape_limits["clamped"] == list(engine.db.beta_names)

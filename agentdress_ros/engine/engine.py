@@ -33,13 +33,21 @@ N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-z
 
 @dataclass(frozen=True)
 class ShapeReport:
-    """What set_shape did. clamped: some phenotype lay outside the allowed range (training range by default)."""
+    """What set_shape did.
+
+    clamped / clamped_names: phenotypes the body and the garment were clamped on (outside Anny's [0, 1]; with an
+    "absolute" shape basis, whose garment is the shape models alone, outside the allowed range as well).
+    held_names: phenotypes only the shape models were held on, at the edge of their training range (age and
+    proportions: trained at beta0 alone); the garment's fit (its surface binding) and the body follow them.
+    """
 
     clamped: bool
     clamped_names: tuple
     requested: np.ndarray  # (P,)
-    effective: np.ndarray  # (P,) the beta the shape models and body were evaluated at
+    effective: np.ndarray  # (P,) the beta the body, its skeleton and the garment's fit were evaluated at
     seconds: float
+    model_beta: np.ndarray | None = None  # (P,) the beta the shape models were evaluated at
+    held_names: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -306,8 +314,10 @@ class Engine:
     def set_shape(self, beta) -> ShapeReport:
         """Re-evaluate every anchor's shape model and binding for `beta` (P,), then swap them in atomically.
 
-        Raises ValueError naming the phenotype for non-finite values or a wrong length; out-of-range values are
-        clamped (to the training range unless config.clamp_to_training_range is False) and reported.
+        Raises ValueError naming the phenotype for non-finite values or a wrong length. The body, its skeleton and
+        the garment's fit (the surface binding the skinned_residual basis adds back) follow beta within Anny's
+        [0, 1]; only the shape models are held at their training range (unless config.clamp_to_training_range is
+        False), so garment and body stay fitted to the same shape. Both are reported (ShapeReport).
         """
         start = time.perf_counter()
         db, config = self.db, self.config
@@ -318,11 +328,12 @@ class Engine:
         bad = [names[i] for i in np.flatnonzero(~np.isfinite(requested))]
         if bad:
             raise ValueError(f"body shape has non-finite values for {', '.join(bad)}")
-        low, high = np.zeros(len(names)), np.ones(len(names))
-        if config.clamp_to_training_range:
-            low, high = np.maximum(low, db.beta_range[:, 0]), np.minimum(high, db.beta_range[:, 1])
-        effective = np.clip(requested, low, high)
+        effective = np.clip(requested, 0.0, 1.0)
+        model_beta = np.clip(effective, *db.beta_range.T) if config.clamp_to_training_range else effective
+        if not self._residual:  # no fit apart from the shape models: the garment, and so the body, are held too
+            effective = model_beta
         clamped_names = tuple(names[i] for i in np.flatnonzero(effective != requested))
+        held_names = tuple(names[i] for i in np.flatnonzero(model_beta != effective))
 
         shape = self.body.shape(effective)
         heads = np.ascontiguousarray(shape.heads, dtype=np.float64)
@@ -330,7 +341,7 @@ class Engine:
         transforms = self._anchor_transforms(heads)
         base = self._skinned_at_anchors(shape, transforms) if self._residual else self._base0
         rest = np.ascontiguousarray(self._fitted_rest(shape) if self._residual else db.rest, dtype=self.dtype)
-        phi = self._coefficients(effective)
+        phi = self._coefficients(model_beta)
         normals = vertex_normals(shape.vertices, self.body.body_faces)
         body_points = np.ascontiguousarray(shape.vertices[self.bound_body_vertex], dtype=self.dtype)
         body_normals = np.ascontiguousarray(normals[self.bound_body_vertex], dtype=self.dtype)
@@ -342,7 +353,8 @@ class Engine:
                       body_normals.astype(np.float64), config.penetration_margin, deltas, clearances,
                       self._residual, base, self._base0, self._anchor_transforms0)
         self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals, rest)
-        report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start)
+        report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start,
+                             model_beta, held_names)
         self.shape_report = report
         return report
 

@@ -6,6 +6,9 @@ A `GarmentModel` turns a body shape and a pose into garment vertices:
     model.faces         (F, 3) int32 topology (vertex order = the synthesized vertices')
     model.n_vertices    V
     model.kind          "skinned" | "database" (for the status topic)
+    model.shape_limits  optional, for the status topic: {"clamped": [phenotype, ...] the garment was clamped on,
+                        "held": [...] only its shape models were held on (their training range; the garment's
+                        fit follows the body)} after the last set_shape
     model.set_shape(beta (6,)) -> clamped: bool      rare: refits the model to a body shape (ValueError if
                                                      non-finite / wrong length, naming the phenotype)
     model.synthesize(rotvecs (B, 3), root_translation (3,)) -> (V, 3) float32
@@ -184,8 +187,12 @@ class EngineGarmentModel:
         return self._n_vertices
 
     def set_shape(self, beta) -> bool:
-        """True when the engine clamped beta (to its training range, which may be narrower than [0, 1])."""
-        return bool(self.engine.set_shape(beta).clamped)
+        """True when the engine clamped beta for the garment (outside [0, 1], or the training range of a database
+        without a surface binding); `shape_limits` names those phenotypes and the ones only the shape models held
+        at their training range."""
+        report = self.engine.set_shape(beta)
+        self.shape_limits = {"clamped": list(report.clamped_names), "held": list(report.held_names)}
+        return bool(report.clamped)
 
     def synthesize(self, rotvecs, root_translation) -> np.ndarray:
         return np.asarray(self.engine.synthesize(rotvecs, root_translation), dtype=np.float32)

@@ -342,7 +342,8 @@ class AgentDressNode(Node):
             "rejected": dict(self.stats.rejected),
             "counts": counts,
             "unknown_joint_names": sorted(self.pose.unknown_names)[:50],
-            "garments": {n: {"kind": m.kind, "vertices": m.n_vertices, "faces": len(m.faces)}
+            "garments": {n: {"kind": m.kind, "vertices": m.n_vertices, "faces": len(m.faces),
+                             "shape_limits": getattr(m, "shape_limits", None)}  # what the garment cannot follow
                          for n, m in self.models.items()},
             "shape": list(self.model_set.scene.beta),
             "model_generation": self.model_set.generation,
