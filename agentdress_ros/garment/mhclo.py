@@ -6,7 +6,7 @@ value adapt the offset to the body's size (MakeHuman's proxy fitting rule). A li
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,7 @@ class MhcloBinding:
     offsets: np.ndarray  # (V, 3) float64 in scale units, MakeHuman axes
     scale_refs: np.ndarray  # (3, 2) int hm08 vertex pairs for the x, y, z scales
     scale_values: np.ndarray  # (3,) reference distances
+    delete_verts: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (D,) hidden hm08 ids
 
     def evaluate(self, body_vertices: np.ndarray) -> np.ndarray:
         """Garment vertices (V, 3) in world metres for hm08 body vertices (N, 3) in world metres."""
@@ -50,13 +51,26 @@ def _read_obj_faces(path: Path) -> tuple[int, np.ndarray]:
     return n_vertices, np.asarray(triangles, dtype=np.int32)
 
 
+def _parse_ranges(parts) -> list[int]:
+    """Tokens like ['12', '-', '15', '20'] -> [12, 13, 14, 15, 20]."""
+    ids, k = [], 0
+    while k < len(parts):
+        if k + 2 < len(parts) and parts[k + 1] == "-":
+            ids += range(int(parts[k]), int(parts[k + 2]) + 1)
+            k += 3
+        else:
+            ids.append(int(parts[k]))
+            k += 1
+    return ids
+
+
 def read_mhclo(path) -> tuple[str, MhcloBinding, np.ndarray]:
     """Parse a `.mhclo` file and its `.obj`: (name, binding, faces (F, 3)). Raises ValueError naming the file."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such .mhclo file")
     header: dict = {}
-    refs, weights, offsets = [], [], []
+    refs, weights, offsets, deleted = [], [], [], []
     section = None
     for number, raw in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
@@ -69,6 +83,12 @@ def read_mhclo(path) -> tuple[str, MhcloBinding, np.ndarray]:
         if parts[0].isalpha() or "_" in parts[0]:
             section = None if parts[0] != "delete_verts" else "delete"
             header[parts[0]] = parts[1:]
+            continue
+        if section == "delete":  # "i", "i - j" (inclusive ranges) of hm08 vertices the garment hides
+            try:
+                deleted += _parse_ranges(parts)
+            except ValueError:
+                raise ValueError(f"{path}:{number}: expected vertex ids and 'i - j' ranges, got {raw!r}") from None
             continue
         if section != "verts":
             continue
@@ -96,7 +116,8 @@ def read_mhclo(path) -> tuple[str, MhcloBinding, np.ndarray]:
     if n_obj != len(refs):
         raise ValueError(f"{path}: {len(refs)} bound vertices but {header['obj_file'][0]} has {n_obj}")
     binding = MhcloBinding(
-        np.asarray(refs, dtype=np.int32), np.asarray(weights), np.asarray(offsets), scale_refs, scale_values
+        np.asarray(refs, dtype=np.int32), np.asarray(weights), np.asarray(offsets), scale_refs, scale_values,
+        np.unique(np.asarray(deleted, dtype=np.int64)),
     )
     return header["name"][0], binding, faces
 

@@ -1,0 +1,152 @@
+"""Which body faces a garment covers: the display leaves them out, so no skin shows through the cloth.
+
+Game engines and MakeHuman (`delete_verts` in `.mhclo`) hide the body surface under a garment. Here the covered
+region is computed geometrically, once, from the garment and the body at rest: a body vertex is covered when the
+closest point of the garment lies in front of it (along its normal, within `max_gap`) and at least `margin` away
+(geodesically, over the garment) from the garment's open edges - hems, cuffs, neckline, waist - so that the body
+keeps a band of faces under every edge and no gap opens when the cloth slides over the skin. A body face is covered
+when all its corners are. A MakeHuman garment's own `delete_verts` are used as it states them.
+
+Pure array functions. Shapes: N body vertices, F body triangles, V garment vertices, G garment triangles.
+"""
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from .binding import vertex_normals
+
+#: Defaults: a band of 1.5 cm of body kept under every garment edge; cloth up to 6 cm off the skin still covers it.
+MARGIN = 0.015
+MAX_GAP = 0.06
+#: Body vertices in that band sink up to this far under the cloth (at rest, so it costs nothing per frame).
+TUCK = 0.015
+NO_EDGE = 1e9
+
+__all__ = ["MARGIN", "MAX_GAP", "TUCK", "boundary_distance", "cover_depth", "covered_faces", "covered_vertices",
+           "faces_with_vertices", "garment_covered_faces", "poke_through", "surface_side", "tuck_depth"]
+
+
+def boundary_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) edges of triangles (G, 3) used by one triangle only (sorted vertex pairs)."""
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    return unique[counts == 1]
+
+
+def boundary_distance(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V,) shortest distance along the mesh edges from each vertex (V, 3) to an open edge of faces (G, 3).
+
+    NO_EDGE (1e9, finite so that it interpolates) for a closed mesh and for components without an open edge."""
+    border = np.unique(boundary_edges(faces))
+    if len(border) == 0:
+        return np.full(len(vertices), NO_EDGE)
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    edges = np.unique(edges, axis=0)
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    graph = coo_matrix((length, (edges[:, 0], edges[:, 1])), shape=(len(vertices),) * 2).tocsr()
+    return np.minimum(dijkstra(graph, directed=False, indices=border, min_only=True), NO_EDGE)
+
+
+def _closest(points, vertices, faces, max_gap):
+    """Closest points of the surface (V, 3), (G, 3) to the points (P, 3) within about max_gap: (candidate ids (C,),
+    closest (C, 3), distance (C,), face ids (C,), geodesic distance of the closest point to the open edges (C,))."""
+    near = cKDTree(vertices).query(points, distance_upper_bound=max_gap + 0.05)[0]
+    candidates = np.flatnonzero(np.isfinite(near))
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    if len(candidates) == 0:
+        return candidates, np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0), mesh
+    closest, distance, face_ids = trimesh.proximity.closest_point(mesh, points[candidates])
+    corners = faces[face_ids]
+    barycentric = np.clip(trimesh.triangles.points_to_barycentric(vertices[corners], closest), 0.0, 1.0)
+    barycentric /= barycentric.sum(axis=1, keepdims=True)
+    edge_distance = (boundary_distance(vertices, faces)[corners] * barycentric).sum(axis=1)
+    return candidates, closest, distance, face_ids, edge_distance, mesh
+
+
+def cover_depth(body_vertices, body_faces, garment_vertices, garment_faces, max_gap: float = MAX_GAP) -> np.ndarray:
+    """(N,) how far inside a garment's footprint each body vertex (N, 3) of the surface body_faces (F, 3) lies: the
+    geodesic distance from the garment's open edges to the vertex's closest garment point (interpolated from the
+    vertices of its triangle), where that point is within max_gap and outside the skin (along the body normal);
+    -1 where the garment (V, 3), (G, 3) does not cover the vertex."""
+    body_vertices = np.asarray(body_vertices, dtype=np.float64)
+    out = np.full(len(body_vertices), -1.0)
+    used = np.unique(body_faces)
+    ids, closest, distance, _, edge_distance, _ = _closest(
+        body_vertices[used], np.asarray(garment_vertices, dtype=np.float64), garment_faces, max_gap)
+    ids = used[ids]
+    normals = vertex_normals(body_vertices, body_faces)[ids]
+    in_front = ((closest - body_vertices[ids]) * normals).sum(axis=1) >= -1e-4
+    out[ids] = np.where((distance <= max_gap) & in_front, edge_distance, -1.0)
+    return out
+
+
+def covered_vertices(body_vertices, body_faces, garment_vertices, garment_faces, margin: float = MARGIN,
+                     max_gap: float = MAX_GAP) -> np.ndarray:
+    """(N,) bool: body vertices (N, 3) of the surface body_faces (F, 3) that garment (V, 3), (G, 3) covers with
+    at least `margin` of cloth to its open edges (see cover_depth)."""
+    return cover_depth(body_vertices, body_faces, garment_vertices, garment_faces, max_gap) >= margin
+
+
+def tuck_depth(depth: np.ndarray, margin: float = MARGIN, tuck: float = TUCK) -> np.ndarray:
+    """(N,) how far to sink each body vertex under the cloth, from cover_depth (N,): 0 outside the garment and at
+    its edges, rising linearly to `tuck` at `margin` inside them (where the faces are hidden anyway). The band of
+    body faces kept under a hem then sits below the cloth instead of cutting through its flat triangles."""
+    return np.where(depth < 0, 0.0, tuck * np.clip(depth / max(margin, 1e-9), 0.0, 1.0))
+
+
+def faces_with_vertices(faces: np.ndarray, hidden: np.ndarray, every: bool = True) -> np.ndarray:
+    """(F,) bool: triangles (F, 3) whose corners are all (every) or any (not every) in the vertex mask (N,)."""
+    corner = hidden[faces]
+    return corner.all(axis=1) if every else corner.any(axis=1)
+
+
+def covered_faces(body_vertices, body_faces, garment_vertices, garment_faces, margin: float = MARGIN,
+                  max_gap: float = MAX_GAP) -> np.ndarray:
+    """(F,) bool: the body triangles (F, 3) a garment covers (see covered_vertices)."""
+    hidden = covered_vertices(body_vertices, body_faces, garment_vertices, garment_faces, margin, max_gap)
+    return faces_with_vertices(body_faces, hidden)
+
+
+def garment_covered_faces(garment, body, shape=None, margin: float = MARGIN, max_gap: float = MAX_GAP,
+                          rest=None) -> np.ndarray:
+    """(F,) bool over `body.body_faces` (hm08 triangles): what `garment` (a Garment, or anything with `faces`)
+    covers on `shape` (default: the reference shape) at rest.
+
+    rest: the garment's rest vertices (V, 3) on that shape if known (a database's drape at beta0); else the
+    garment's binding fits it. A MakeHuman garment with `delete_verts` hides the faces touching those vertices,
+    as MakeHuman does."""
+    from ..body import REFERENCE_SHAPE
+
+    deleted = getattr(getattr(garment, "binding", None), "delete_verts", np.zeros(0, dtype=np.int64))
+    if len(deleted):
+        mask = np.zeros(len(body.assets.template), dtype=bool)
+        mask[deleted] = True
+        return faces_with_vertices(body.body_faces, mask, every=False)
+    shape = shape if shape is not None else body.shape(REFERENCE_SHAPE)
+    rest = garment.rest_vertices(body, shape) if rest is None else rest
+    return covered_faces(shape.vertices, body.body_faces, rest, garment.faces, margin, max_gap)
+
+
+def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: float = MARGIN) -> np.ndarray:
+    """(P,) int8 side of each point (P, 3) relative to an open surface (V, 3), (G, 3) whose normals face outwards:
+    +1 outside, -1 inside, 0 where the surface does not cover the point - its closest surface point is further than
+    max_gap, or within edge_band (geodesically) of an open edge: the band kept drawn under hems and cuffs."""
+    points = np.asarray(points, dtype=np.float64)
+    out = np.zeros(len(points), dtype=np.int8)
+    ids, closest, distance, face_ids, edge_distance, mesh = _closest(
+        points, np.asarray(vertices, dtype=np.float64), faces, max_gap)
+    side = np.where(((points[ids] - closest) * mesh.face_normals[face_ids]).sum(axis=1) > 0, 1, -1)
+    out[ids] = np.where((distance <= max_gap) & (edge_distance >= edge_band), side, 0)
+    return out
+
+
+def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max_gap: float = MAX_GAP,
+                 edge_band: float = MARGIN) -> np.ndarray:
+    """(F,) bool: body triangles (F, 3) whose centre lies outside the garment's surface where the garment covers it
+    (surface_side). The check behind "no skin through the cloth", on posed meshes of any frame."""
+    centres = np.asarray(body_vertices, dtype=np.float64)[body_faces].mean(axis=1)
+    return surface_side(centres, garment_vertices, garment_faces, max_gap, edge_band) > 0

@@ -1,0 +1,110 @@
+"""No skin through the cloth: the body faces a garment covers, the band kept under its edges, MakeHuman delete_verts."""
+import numpy as np
+import pytest
+
+from agentdress_ros.garment import make_garment, read_mhclo
+from agentdress_ros.garment.binding import region_weights
+from agentdress_ros.garment.coverage import (
+    boundary_distance,
+    cover_depth,
+    covered_faces,
+    garment_covered_faces,
+    poke_through,
+    surface_side,
+    tuck_depth,
+)
+
+from .conftest import shared_path
+
+
+def grid(n: int, size: float, z: float = 0.0, flip: bool = False):
+    """A flat square (n x n vertices, side `size`, centred at the origin, at height z) of triangles facing +z."""
+    u = np.linspace(-size / 2, size / 2, n)
+    x, y = np.meshgrid(u, u, indexing="ij")
+    vertices = np.stack([x.ravel(), y.ravel(), np.full(n * n, z)], axis=1)
+    ids = np.arange(n * n).reshape(n, n)
+    a, b, c, d = ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]).astype(np.int32)
+    return vertices, (faces[:, ::-1] if flip else faces)
+
+
+def test_boundary_distance_of_a_flat_square_is_the_distance_to_its_nearest_side():
+    vertices, faces = grid(11, 1.0)
+    expected = 0.5 - np.abs(vertices[:, :2]).max(axis=1)
+    np.testing.assert_allclose(boundary_distance(vertices, faces), expected, atol=1e-12)
+
+
+def test_a_garment_over_a_flat_body_covers_what_lies_under_it_minus_the_margin():
+    body, body_faces = grid(41, 1.0)  # 2.5 cm spacing
+    cloth, cloth_faces = grid(21, 0.5, z=0.01)  # a 50 cm square 1 cm above the skin
+    margin = 0.04  # between grid lines: no float tie at the threshold
+    depth = cover_depth(body, body_faces, cloth, cloth_faces, max_gap=0.03)
+    inside = np.abs(body[:, :2]).max(axis=1)
+    under = inside <= 0.25 + 1e-9
+    np.testing.assert_allclose(depth[under], 0.25 - inside[under], atol=1e-9)  # the distance to the cloth's edge
+    assert (depth[~under] == 0).all() or (depth[~under] <= 1e-9).all()  # beyond the edge: closest point on it
+    hidden = covered_faces(body, body_faces, cloth, cloth_faces, margin=margin, max_gap=0.03)
+    corners = np.abs(body[body_faces][:, :, :2]).max(axis=2).max(axis=1)
+    np.testing.assert_array_equal(hidden, corners <= 0.25 - margin + 1e-9)
+    # cloth too far off the skin, or behind it, covers nothing
+    assert not covered_faces(body, body_faces, cloth + [0, 0, 0.2], cloth_faces, max_gap=0.03).any()
+    assert not covered_faces(body, body_faces, cloth - [0, 0, 0.02], cloth_faces, max_gap=0.03).any()
+
+
+def test_tuck_rises_from_the_edge_to_the_margin():
+    depth = np.array([-1.0, 0.0, 0.005, 0.01, 0.02, 0.5])
+    np.testing.assert_allclose(tuck_depth(depth, margin=0.01, tuck=0.004), [0, 0, 0.002, 0.004, 0.004, 0.004])
+
+
+def test_poke_through_counts_skin_outside_the_cloth_away_from_its_edges():
+    body, body_faces = grid(41, 1.0)
+    cloth, cloth_faces = grid(21, 0.5, z=-0.005)  # the skin is 5 mm outside the cloth
+    poking = poke_through(body, body_faces, cloth, cloth_faces, max_gap=0.03, edge_band=0.05)
+    centres = np.abs(body[body_faces].mean(axis=1)[:, :2]).max(axis=1)
+    assert poking[centres < 0.19].all() and not poking[centres > 0.21].any()
+    assert not poke_through(body, body_faces, cloth + [0, 0, 0.01], cloth_faces, 0.03, 0.05).any()
+    side = surface_side(np.array([[0, 0, 0.01], [0, 0, -0.01], [0, 0, 0.5], [0.249, 0, 0.0]]), cloth + [0, 0, 0.005],
+                        cloth_faces, max_gap=0.03, edge_band=0.01)
+    np.testing.assert_array_equal(side, [1, -1, 0, 0])
+
+
+@pytest.fixture(scope="module")
+def tshirt(body):
+    return make_garment("tshirt", body, n_vertices=1500)
+
+
+def test_the_tshirt_hides_torso_and_upper_arms_but_not_head_hands_or_legs(body, tshirt):
+    hidden = garment_covered_faces(tshirt, body)
+    regions = region_weights(body.skin_indices, body.skin_weights, body.bone_names)[body.body_faces[:, 0]]
+    region = regions.argmax(axis=1)
+    torso = region == 0
+    assert 0.15 < hidden[torso].mean() < 0.6  # under the shirt; head (dense), neck and hips stay
+    assert hidden[(region == 1) | (region == 3)].mean() > 0.1  # upper arms: under the short sleeves
+    height = body.shape().vertices[body.body_faces].mean(axis=1)[:, 2]
+    assert not hidden[(region == 2) | (region == 4)].any()  # forearms and hands
+    assert not hidden[(height > 1.6) | (height < 0.9)].any()  # head; legs below the hem
+
+
+def test_no_hidden_face_touches_skin_that_shows_at_rest(body, tshirt):
+    """Every hidden face lies under the cloth at rest, at least the margin inside its edges."""
+    shape = body.shape()
+    rest = tshirt.rest_vertices(body, shape)
+    hidden = garment_covered_faces(tshirt, body)
+    depth = cover_depth(shape.vertices, body.body_faces, rest, tshirt.faces)
+    assert hidden.any() and (depth[body.body_faces[hidden]] >= 0.015).all()
+
+
+def test_mhclo_delete_verts_are_read_and_hide_the_faces_they_touch(body, tmp_path):
+    path = shared_path("garments", "makehuman", "male_casualsuit04", "male_casualsuit04.mhclo")
+    _, binding, _ = read_mhclo(path)
+    deleted = binding.delete_verts
+    assert 1355 in deleted and 1394 in deleted and 1395 not in deleted and 1399 in deleted  # "1355 - 1394 1399 - ..."
+    assert len(deleted) > 1000 and deleted.max() < 19158
+
+    class Garment:  # only what garment_covered_faces reads of a MakeHuman garment
+        faces = np.zeros((0, 3), dtype=np.int32)
+
+    Garment.binding = binding
+    hidden = garment_covered_faces(Garment(), body)
+    touches = np.isin(body.body_faces, deleted).any(axis=1)
+    np.testing.assert_array_equal(hidden, touches)

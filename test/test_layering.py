@@ -1,0 +1,58 @@
+"""Layered garments: the outer garment is pushed out of the inner one through a fixed binding (no per-frame search)."""
+import numpy as np
+import trimesh
+
+from agentdress_ros.engine.layering import bind_layers, face_vertex_normals, push_out_of_inner
+
+from .test_coverage import grid
+
+
+def test_vertex_normals_of_a_sphere_point_outwards():
+    sphere = trimesh.creation.icosphere(3)
+    normals = face_vertex_normals(sphere.vertices, sphere.faces, np.empty_like(sphere.vertices))
+    radial = sphere.vertices / np.linalg.norm(sphere.vertices, axis=1)[:, None]
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-12)
+    assert (normals * radial).sum(axis=1).min() > 0.999  # area weighting tilts them by under 3 degrees
+
+
+def test_an_outer_sheet_inside_the_inner_one_is_pushed_to_the_clearance_and_only_over_it():
+    inner, inner_faces = grid(11, 0.5)  # inner garment: a 50 cm square at z = 0, normals +z
+    outer, _ = grid(21, 1.0, z=-0.01)  # outer garment: 1 m square 1 cm *inside* the inner one
+    binding = bind_layers(outer, inner, inner_faces, max_distance=0.05, edge_margin=0.02)
+    over = np.abs(outer[:, :2]).max(axis=1) <= 0.25 - 0.02 + 1e-9
+    np.testing.assert_array_equal(np.isin(np.arange(len(outer)), binding.outer), over)
+    moved = outer.copy()
+    count = push_out_of_inner(moved, inner, inner_faces, binding, clearance=0.004)
+    assert count == over.sum()
+    np.testing.assert_allclose(moved[over, 2], 0.004, atol=1e-12)  # exactly the clearance outside
+    np.testing.assert_array_equal(moved[~over], outer[~over])  # beyond the inner garment's edge: untouched
+    np.testing.assert_array_equal(moved[:, :2], outer[:, :2])  # pushed along the normal only
+
+
+def test_the_binding_follows_the_posed_inner_garment():
+    """Bound at rest, then both garments move rigidly: the push acts along the moved normals."""
+    inner, inner_faces = grid(11, 0.5)
+    outer, _ = grid(11, 0.5, z=0.02)  # outside at rest
+    binding = bind_layers(outer, inner, inner_faces, max_distance=0.05, edge_margin=0.0)
+    angle = 0.7
+    rotation = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    inner_posed = inner @ rotation.T + [0.1, 0.2, 0.3]
+    outer_posed = (outer - [0, 0, 0.03]) @ rotation.T + [0.1, 0.2, 0.3]  # slid 1 cm inside the inner sheet
+    moved = outer_posed.copy()
+    push_out_of_inner(moved, inner_posed, inner_faces, binding, clearance=0.005)
+    normal = rotation @ [0, 0, 1]
+    np.testing.assert_allclose((moved - inner_posed) @ normal, 0.005, atol=1e-9)
+
+
+def test_an_outer_garment_already_outside_is_left_alone():
+    sphere = trimesh.creation.icosphere(3)
+    outer = sphere.vertices * 1.05
+    binding = bind_layers(outer, sphere.vertices, sphere.faces, max_distance=0.1)
+    assert len(binding) == len(outer)  # a closed inner garment has no edge: everything binds
+    moved = outer.copy()
+    assert push_out_of_inner(moved, sphere.vertices, sphere.faces, binding, clearance=0.01) == 0
+    np.testing.assert_array_equal(moved, outer)
+    inside = sphere.vertices * 0.97
+    push_out_of_inner(inside, sphere.vertices, sphere.faces, bind_layers(inside, sphere.vertices, sphere.faces),
+                      clearance=0.01)
+    assert np.linalg.norm(inside, axis=1).min() > 1.0  # every vertex ends outside the inner sphere

@@ -1,0 +1,61 @@
+"""Display refinement: Loop subdivision as a fixed sparse matrix, checked against the scheme's exact properties."""
+import numpy as np
+import pytest
+import trimesh
+
+from agentdress_ros.engine.subdivision import LoopSubdivision, loop_stencils
+
+from .test_coverage import grid
+
+
+def test_one_round_adds_one_vertex_per_edge_and_four_triangles_per_triangle():
+    sphere = trimesh.creation.icosphere(1)
+    matrix, faces, edges = loop_stencils(sphere.faces, len(sphere.vertices))
+    assert matrix.shape == (len(sphere.vertices) + len(sphere.edges_unique), len(sphere.vertices))
+    assert len(faces) == 4 * len(sphere.faces)
+    np.testing.assert_allclose(np.asarray(matrix.sum(axis=1)).ravel(), 1.0)  # affine invariance
+    refined = trimesh.Trimesh(np.zeros((matrix.shape[0], 3)), faces, process=False)
+    assert refined.is_watertight and refined.is_winding_consistent
+
+
+def test_known_stencils_on_a_regular_sheet():
+    vertices, faces = grid(5, 1.0)
+    matrix, _, edges = loop_stencils(faces, len(vertices))
+    centre = 12  # interior vertex of valence 6: 1 - 6 * 1/16 = 5/8 itself, 1/16 each neighbour
+    row = matrix[centre].toarray().ravel()
+    assert row[centre] == pytest.approx(5 / 8) and np.sort(row[row > 0])[:6] == pytest.approx([1 / 16] * 6)
+    corner_edge = np.flatnonzero((edges == [0, 1]).all(axis=1))[0]  # an open edge: its midpoint
+    row = matrix[len(vertices) + corner_edge].toarray().ravel()
+    assert row[0] == row[1] == 0.5 and row.sum() == 1.0
+
+
+def test_a_flat_sheet_stays_flat_and_linear_fields_are_reproduced():
+    vertices, faces = grid(9, 1.0)
+    sub = LoopSubdivision(faces, len(vertices), levels=2, offset=0.0)
+    refined = sub.apply(vertices)
+    np.testing.assert_allclose(refined[:, 2], 0.0, atol=1e-15)
+    field = vertices @ [0.3, -0.7, 0.0]
+    # straight open edges stay straight and interior stencils are symmetric: x and y are reproduced exactly
+    np.testing.assert_allclose(sub.matrix @ field, refined @ [0.3, -0.7, 0.0], atol=1e-12)
+    np.testing.assert_allclose(np.abs(refined[:, :2]).max(), 0.5)  # the sheet keeps its extent
+    lifted = LoopSubdivision(faces, len(vertices), levels=1, offset=0.003).apply(vertices)
+    np.testing.assert_allclose(lifted[:, 2], 0.003, atol=1e-12)  # the offset along the normal
+
+
+def test_a_sphere_shrinks_and_the_offset_lifts_it_back_out():
+    sphere = trimesh.creation.icosphere(2)
+    plain = LoopSubdivision(sphere.faces, len(sphere.vertices), 1, offset=0.0).apply(sphere.vertices)
+    radius = np.linalg.norm(plain, axis=1)
+    assert radius.max() < 1.0 and radius.min() > 0.97  # Loop lies inside a convex control mesh
+    lifted = LoopSubdivision(sphere.faces, len(sphere.vertices), 1, offset=0.02).apply(sphere.vertices)
+    np.testing.assert_allclose(np.linalg.norm(lifted, axis=1), radius + 0.02, atol=2e-3)
+
+
+def test_levels_zero_is_the_identity_and_float32_keeps_its_dtype():
+    vertices, faces = grid(5, 1.0)
+    assert LoopSubdivision(faces, len(vertices), 0).apply(vertices) is vertices
+    sub = LoopSubdivision(faces, len(vertices), 2)
+    out = sub.apply(vertices.astype(np.float32))
+    assert out.dtype == np.float32 and out.shape == (sub.n_vertices, 3) and len(sub.faces) == 16 * len(faces)
+    with pytest.raises(ValueError, match="levels"):
+        LoopSubdivision(faces, len(vertices), 4)
