@@ -276,7 +276,7 @@ def test_live_node_rejects_bad_messages_and_stays_finite(live):
     now_ns = node.get_clock().now().nanoseconds
     _send_until_counted(live, lambda: joints.publish(_joint_state(node, ["LeftArm_rx"], [0.2], now_ns)),
                         "joint_states_received", where="counts")
-    _send_until_counted(live, lambda: joints.publish(_joint_state(node, ["LeftArm_rx"], [0.4], now_ns - 10**9)),
+    _send_until_counted(live, lambda: joints.publish(_joint_state(node, ["LeftArm_rx"], [0.4], now_ns - 10**8)),
                         "joint_states/out_of_order")
 
     # Unknown names mixed with known ones: applied, reported once.

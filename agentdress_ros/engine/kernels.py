@@ -172,11 +172,36 @@ def region_neighbours(query, poses, dofs, q, eps, power, eta, state, use_state, 
 AUGMENTED, PLAIN, ZEROTH = 0, 1, 2
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True)
+def count_non_finite(out):
+    """Rows of out (V, 3) with a NaN or Inf. Compiled without fastmath, which lets LLVM assume every value finite
+    and fold np.isfinite to True: a guard inside a fastmath kernel is silently removed."""
+    bad = 0
+    for o in range(out.shape[0]):
+        if not (np.isfinite(out[o, 0]) and np.isfinite(out[o, 1]) and np.isfinite(out[o, 2])):
+            bad += 1
+    return bad
+
+
+@numba.njit(cache=True, nogil=True)
 def synthesize_vertices(zero, skin_indices, skin_weights, transforms, reference_translations, pose_values,
                         pose_skinned, blended, mode, penetration, body_points, body_normals, clearance, normals, order,
                         out):
-    """One frame of Eq. 4 per vertex, and the geometry of Eq. 10. Returns the number of non-finite vertices.
+    """One frame of Eq. 4 per vertex, and the geometry of Eq. 10 (see synthesize_vertices_fastmath for the
+    arguments). Returns the number of non-finite output vertices without penetration; with it, 0 (apply_push,
+    which moves the vertices afterwards, counts)."""
+    synthesize_vertices_fastmath(zero, skin_indices, skin_weights, transforms, reference_translations, pose_values,
+                                 pose_skinned, blended, mode, penetration, body_points, body_normals, clearance,
+                                 normals, order, out)
+    return 0 if penetration else count_non_finite(out)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def synthesize_vertices_fastmath(zero, skin_indices, skin_weights, transforms, reference_translations, pose_values,
+                                 pose_skinned, blended, mode, penetration, body_points, body_normals, clearance,
+                                 normals, order, out):
+    """One frame of Eq. 4 per vertex, and the geometry of Eq. 10, with no finiteness check (fastmath would drop it:
+    synthesize_vertices checks the output).
 
     Internal vertex order (see block_accumulate); out (V, 3) is in the caller's order: internal vertex v is written
     to out[order[v]]. skin_indices/skin_weights (V, I); transforms (B, 3, 4) at the query pose for the current shape
@@ -195,7 +220,6 @@ def synthesize_vertices(zero, skin_indices, skin_weights, transforms, reference_
     """
     n_vertices = order.shape[0]
     tiny = zero + 1e-30
-    bad = 0
     for v in range(n_vertices):
         a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = zero
         tx = ty = tz = zero
@@ -266,13 +290,10 @@ def synthesize_vertices(zero, skin_indices, skin_weights, transforms, reference_
             normals[0, v] = nx
             normals[1, v] = ny
             normals[2, v] = nz
-        if not penetration and not (np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)):
-            bad += 1  # with penetration, apply_push counts
         o = order[v]
         out[o, 0] = ox
         out[o, 1] = oy
         out[o, 2] = oz
-    return bad
 
 
 @numba.njit(cache=True, nogil=True)

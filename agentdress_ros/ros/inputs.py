@@ -9,7 +9,10 @@ human message naming what was wrong. Reasons:
 | `length_mismatch` | JointState names and positions of different lengths; a shape of the wrong length |
 | `non_finite` | a NaN or Inf position / shape value (the joint or phenotype is named) |
 | `out_of_range` | a joint value beyond +-MAX_ABS_JOINT (finite, but it would overflow float32 downstream) |
-| `out_of_order` | a header stamp older than the last accepted one |
+| `out_of_order` | a header stamp older than the last accepted one by less than the jump threshold |
+
+A stamp that jumps back or forward by more than the threshold (a looped bag, a simulator or /clock reset, a message
+stamped in the future and then the present again) starts a new timeline: accepted, and reported by `accept`.
 | `no_known_joints` | a JointState whose names are all unknown (each unknown name is also reported once) |
 """
 from __future__ import annotations
@@ -23,11 +26,16 @@ from ..body import PHENOTYPE_NAMES, check_shape
 from ..motion.joint_names import JOINT_INDEX, JOINT_NAMES
 from ..motion.skeleton import NUM_BONES
 
-__all__ = ["MAX_ABS_JOINT", "InputRejected", "PoseInput", "ShapeUpdate", "check_shape_values"]
+__all__ = ["MAX_ABS_JOINT", "MAX_UNKNOWN_NAMES", "InputRejected", "PoseInput", "ShapeUpdate", "check_shape_values"]
 
 #: Largest accepted |position| (radians or metres). Rotation vectors wrap every 2 pi and agents stay within
 #: kilometres of the origin; anything larger is a broken sender, and it would overflow float32 garment vertices.
 MAX_ABS_JOINT = 1.0e4
+
+#: Unknown joint names remembered (each reported once); a sender inventing names cannot grow the node's memory.
+#: Beyond this, unknown names are still returned (the node's throttled warning limits the log), never stored.
+MAX_UNKNOWN_NAMES = 64
+MAX_NAME_LENGTH = 80  # characters of an unknown name kept and shown
 
 
 class InputRejected(ValueError):
@@ -48,27 +56,35 @@ class PoseInput:
     `values` (3B + 3,) float64 in JOINT_NAMES order (rotation vectors, then Hips translation); `version` counts
     accepted messages (the node's timer works only when it changed); `stamp_ns` is the header stamp of the last
     accepted message (0: unstamped). A zero stamp is accepted without an ordering check (senders that do not stamp).
+    A stamp more than `stamp_jump_ns` away from the last accepted one starts a new timeline: accepted, and
+    `timeline_jump_ns` (signed: negative back) says so until the next accepted message (0 otherwise).
     """
 
-    def __init__(self):
+    def __init__(self, stamp_jump_ns: int = 500_000_000):
         self.values = np.zeros(len(JOINT_NAMES))
         self.version = 0
         self.stamp_ns = 0
-        self.last_stamp_ns = 0  # newest stamp accepted so far (never goes back)
+        self.last_stamp_ns = 0  # stamp of the last accepted stamped message: the timeline's newest
+        self.stamp_jump_ns = int(stamp_jump_ns)
+        self.timeline_jump_ns = 0
         self.unknown_names: set[str] = set()
 
     def accept(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int = 0) -> list[str]:
-        """Apply one JointState. Returns the unknown names seen here for the first time (to report once).
+        """Apply one JointState. Returns the unknown names not reported before (to report once; once
+        MAX_UNKNOWN_NAMES are remembered, every new one is returned each time).
 
         Raises InputRejected (nothing changes) for the reasons in the module docstring.
         """
+        self.timeline_jump_ns = 0
         n_names, n_positions = len(names), len(positions)
         if n_names == 0 and n_positions == 0:
             raise InputRejected("empty", "JointState has no names and no positions")
         if n_names != n_positions:
             raise InputRejected("length_mismatch",
                                 f"JointState has {n_names} names but {n_positions} positions; they must match")
-        if stamp_ns and stamp_ns < self.last_stamp_ns:
+        step = stamp_ns - self.last_stamp_ns if stamp_ns and self.last_stamp_ns else 0
+        jump = step if abs(step) > self.stamp_jump_ns else 0
+        if step < 0 and not jump:
             raise InputRejected("out_of_order", f"JointState stamp {stamp_ns * 1e-9:.6f} s is older than the last "
                                 f"accepted {self.last_stamp_ns * 1e-9:.6f} s")
         values = np.asarray(positions, dtype=np.float64)
@@ -85,9 +101,11 @@ class PoseInput:
         new_unknown = []
         if len(known) < n_names:
             for i, j in enumerate(index):
-                if j < 0 and names[i] not in self.unknown_names:
-                    self.unknown_names.add(names[i])
-                    new_unknown.append(names[i])
+                name = str(names[i])[:MAX_NAME_LENGTH]
+                if j < 0 and name not in self.unknown_names and name not in new_unknown:
+                    new_unknown.append(name)
+                    if len(self.unknown_names) < MAX_UNKNOWN_NAMES:
+                        self.unknown_names.add(name)
         if not known:
             raise InputRejected("no_known_joints", f"JointState names no known joint (got {list(names)[:5]}...; "
                                 f"expected <Bone>_rx/_ry/_rz and Hips_tx/_ty/_tz)")
@@ -96,6 +114,7 @@ class PoseInput:
         self.stamp_ns = stamp_ns
         if stamp_ns:
             self.last_stamp_ns = stamp_ns
+        self.timeline_jump_ns = jump
         return new_unknown
 
     @property

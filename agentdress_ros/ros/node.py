@@ -16,6 +16,10 @@ would flatten it into string key/values and needs an aggregator to be readable.
 Timer ticks do nothing when no new pose arrived and nothing changed, except re-publishing the last clouds at
 keepalive_hz (default 1 Hz: a display that joins late, or a best-effort sample lost on the way, is repaired within a
 second for the cost of one publish per garment per second, with no synthesis).
+
+No exception ends the node: every timer, subscription and parameter callback, the model worker and the marker
+thread catch what they raise, log it (throttled) and count it under `errors` on ~/status; the last good clouds keep
+flowing, and a worker or marker thread that dies is restarted.
 """
 from __future__ import annotations
 
@@ -30,6 +34,7 @@ import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
 from shape_msgs.msg import Mesh
@@ -41,12 +46,16 @@ from .garment_models import GarmentDatabaseError
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .messages import make_marker, make_mesh, make_point_cloud, set_cloud_vertices, stamp_from_ns
 from .params import PARAMETERS, ParameterError, check_garment_config, database_file_problem, validate
-from .runtime import GarmentSpec, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set
+from .runtime import (GarmentSpec, ModelSet, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set,
+                      scene_key)
 from .spin import spin_until_shutdown
 
 NODE_NAME = "agentdress_node"
 TOPOLOGY_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: Parameters that shape the model set: a rebuild that fails rolls them back to the values of the running set.
+SCENE_PARAMETERS = ("garments", "garment_vertices", "garment_databases", "engine", "publish_body", "skinned_fallback")
+MARKER_COLORS = ((0.2, 0.45, 0.85, 1.0), (0.25, 0.25, 0.3, 1.0), (0.85, 0.4, 0.2, 1.0), (0.9, 0.75, 0.6, 1.0))
 
 
 class ConfigError(RuntimeError):
@@ -82,7 +91,7 @@ class AgentDressNode(Node):
         self.config = self._read_config()
         self.throttle = Throttle(self.config["warn_throttle_s"])
         self.stats = TickStats()
-        self.pose = PoseInput()
+        self.pose = PoseInput(self._stamp_jump_ns())
         self.guard = OutputGuard()
         self._lock = threading.Lock()  # guards publishers against the marker thread
 
@@ -98,14 +107,19 @@ class AgentDressNode(Node):
             f"{n} ({m.kind}, {m.n_vertices} vertices)" for n, m in model_set.models.items()))
         self.models, self.model_set = {}, None
         self.point_pubs, self.mesh_pubs, self.clouds = {}, {}, {}
+        # Parameter values of the running model set, and of the sets asked for (by scene key) until one is built.
+        self._running_parameters = self._scene_parameters()
+        self._requested_parameters: dict[tuple, list[Parameter]] = {}
+        self._retry_install = None
         self._install(model_set)
-        self.worker = ModelWorker(self.body, model_set, on_error=lambda m: self._warn("rebuild", m),
-                                  on_built=self._on_built, prepare=self._prepare)
+        self.worker = ModelWorker(self.body, model_set, on_built=self._on_built, prepare=self._prepare)
 
-        self.create_subscription(JointState, self.config["joint_state_topic"], self._on_joint_state,
-                                 _qos(self.config["qos.joint_states.reliability"], self.config["qos.joint_states.depth"]))
-        self.create_subscription(Float32MultiArray, self.config["shape_topic"], self._on_shape,
-                                 _qos(self.config["qos.shape.reliability"], self.config["qos.shape.depth"]))
+        joint_qos = _qos(self.config["qos.joint_states.reliability"], self.config["qos.joint_states.depth"])
+        shape_qos = _qos(self.config["qos.shape.reliability"], self.config["qos.shape.depth"])
+        self.create_subscription(JointState, self.config["joint_state_topic"],
+                                 self._guarded("joint_states", self._on_joint_state), joint_qos)
+        self.create_subscription(Float32MultiArray, self.config["shape_topic"],
+                                 self._guarded("body_shape", self._on_shape), shape_qos)
         self.status_pub = self.create_publisher(String, "~/status", 10)
         self.marker_pub = None
         self._marker_job, self._marker_event = None, threading.Event()
@@ -115,8 +129,7 @@ class AgentDressNode(Node):
         self._set_timer("tick", self.config["rate_hz"], self._on_tick)
         self._set_timer("status", self.config["status_rate_hz"], self._on_status)
         self._set_timer("marker", self.config["marker_rate_hz"], self._on_marker)
-        self._marker_thread = threading.Thread(target=self._marker_loop, name="agentdress-marker", daemon=True)
-        self._marker_thread.start()
+        self._start_marker_thread()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
 
@@ -163,7 +176,19 @@ class AgentDressNode(Node):
             return SetParametersResult(successful=False, reason=str(error))
         return SetParametersResult(successful=True)
 
+    def _stamp_jump_ns(self) -> int:
+        return int(self.config["stamp_jump_threshold_s"] * 1e9)
+
+    def _scene_parameters(self) -> list[Parameter]:
+        return [self.get_parameter(name) for name in SCENE_PARAMETERS]
+
     def _after_set_parameters(self, parameters):
+        try:
+            self._apply_parameters(parameters)
+        except Exception as error:  # raised into rclpy's parameter service, it would end the spin
+            self._report_error("parameters", error)
+
+    def _apply_parameters(self, parameters):
         changed = {p.name for p in parameters}
         for p in parameters:
             self.config[p.name] = validate(p.name, p.value)
@@ -173,34 +198,47 @@ class AgentDressNode(Node):
                 self._set_timer(key, self.config[name], callback)
         if "warn_throttle_s" in changed:
             self.throttle.period = self.config["warn_throttle_s"]
+        if "stamp_jump_threshold_s" in changed:
+            self.pose.stamp_jump_ns = self._stamp_jump_ns()
         if "frame_id" in changed:
             self._dirty = True
         if "shape" in changed:
             self._apply_shape(self.config["shape"], "shape parameter")
-        if changed & {"garments", "garment_vertices", "garment_databases", "engine", "publish_body",
-                      "skinned_fallback"}:
-            scene = self._scene(beta=self.worker.wanted.beta)
-            self.worker.request(garments=scene.garments, publish_body=scene.publish_body,
-                                skinned_fallback=scene.skinned_fallback)
+        if changed & set(SCENE_PARAMETERS):
+            self._request_scene()
+
+    def _request_scene(self):
+        """Ask the worker for the scene of the current parameters, remembering their values for a rollback."""
+        scene = self._scene(beta=self.worker.wanted.beta)
+        scene = self.worker.request(garments=scene.garments, publish_body=scene.publish_body,
+                                    skinned_fallback=scene.skinned_fallback)
+        self._requested_parameters[scene_key(scene)] = self._scene_parameters()
+        while len(self._requested_parameters) > 8:  # keys of superseded requests that were never built
+            self._requested_parameters.pop(next(iter(self._requested_parameters)))
 
     def _set_timer(self, key, rate_hz, callback):
         old = self._timer_by_key.pop(key, None)
         if old is not None:
             self.destroy_timer(old)
         if rate_hz > 0:
-            self._timer_by_key[key] = self.create_timer(1.0 / rate_hz, callback)
+            self._timer_by_key[key] = self.create_timer(1.0 / rate_hz, self._guarded(key, callback))
         if key == "marker" and rate_hz > 0 and getattr(self, "marker_pub", None) is None:
             self.marker_pub = self.create_publisher(Marker, "~/marker", 10)
 
     # ---- models --------------------------------------------------------------------------------------------------
+    def _topology(self, model) -> Mesh:
+        """The topology message of a model: its rest-pose frame and faces."""
+        vertices = model.synthesize(np.zeros((self.body.n_bones, 3)), np.zeros(3))
+        mesh = make_mesh(vertices, model.faces)
+        model.reset()  # the rest-pose frame made for the topology is not motion: no decay history from it
+        return mesh
+
     def _prepare(self, model_set, previous):
         """Worker thread: topology messages for models that are new (not reused or refitted clones)."""
         for name, model in model_set.models.items():
             if previous is not None and previous.specs.get(name) == model_set.specs[name]:
                 continue  # the same garment refitted to a new shape: same topology, nothing to re-send
-            vertices = model.synthesize(np.zeros((self.body.n_bones, 3)), np.zeros(3))
-            model_set.topology[name] = make_mesh(vertices, model.faces)
-            model.reset()  # the rest-pose frame made for the topology is not motion: no decay history from it
+            model_set.topology[name] = self._topology(model)
 
     def _on_built(self, model_set, seconds):
         for warning in model_set.warnings:
@@ -210,25 +248,75 @@ class AgentDressNode(Node):
         log(f"garment models rebuilt in {1e3 * seconds:.0f} ms (generation {model_set.generation}): "
             + ", ".join(f"{n} ({m.n_vertices} vertices)" for n, m in model_set.models.items()))
 
-    def _install(self, model_set):
-        """Executor thread: make `model_set` live; (re)publish topology of new models; drop removed garments."""
+    def _install(self, model_set: ModelSet):
+        """Executor thread: make `model_set` live; (re)publish the topology of every model whose spec differs from
+        the running one; drop removed garments. Whatever can fail runs before the switch: a failure leaves the
+        running set live and intact."""
         with self._lock:
-            for name in [n for n in self.point_pubs if n not in model_set.models]:
-                self.destroy_publisher(self.point_pubs.pop(name))
-                self.destroy_publisher(self.mesh_pubs.pop(name))
-                self.clouds.pop(name, None)
-                self.guard.reset(name)
+            running = self.model_set.specs if self.model_set is not None else {}
             points_qos = _qos(self.config["qos.points.reliability"], self.config["qos.points.depth"])
-            for name, model in model_set.models.items():
+            for name in model_set.models:
                 if name not in self.point_pubs:
                     self.point_pubs[name] = self.create_publisher(PointCloud2, f"~/{name}/points", points_qos)
                     self.mesh_pubs[name] = self.create_publisher(Mesh, f"~/{name}/mesh", TOPOLOGY_QOS)
-                if name in model_set.topology:
-                    self.guard.reset(name)  # a new topology: the last good frame of the old one no longer fits
-                    self.clouds.pop(name, None)
-                    self.mesh_pubs[name].publish(model_set.topology[name])
+            # The worker made the messages of its new models; one missing here (the set it was made for never
+            # went live) is made now rather than leaving clouds without their mesh.
+            changed = {name: model_set.topology.get(name) or self._topology(model)
+                       for name, model in model_set.models.items() if running.get(name) != model_set.specs[name]}
+            for name, mesh in changed.items():
+                self.mesh_pubs[name].publish(mesh)
+                self.guard.reset(name)  # a new topology: the last good frame of the old one no longer fits
+                self.clouds.pop(name, None)
             self.models, self.model_set = dict(model_set.models), model_set
             self._dirty = True
+            for name in [n for n in self.point_pubs if n not in model_set.models]:
+                self.clouds.pop(name, None)
+                self.guard.reset(name)
+                self.destroy_publisher(self.point_pubs.pop(name))
+                self.destroy_publisher(self.mesh_pubs.pop(name))
+        parameters = self._requested_parameters.pop(scene_key(model_set.scene), None)
+        if parameters is not None:
+            self._running_parameters = parameters
+
+    def _take_worker_news(self):
+        """Executor thread: install a built set, act on a failed build, report what the worker caught."""
+        if self.worker.ensure_running():
+            self.stats.counts["worker_restarts"] += 1
+            self._warn("worker", "the model worker thread had died: restarted")
+            self._request_scene()
+        for message in self.worker.take_errors():
+            self.stats.errors["worker"] += 1
+            self._warn("worker", message)
+        failure = self.worker.take_failure()
+        if failure is not None:
+            self._on_rebuild_failed(*failure)
+        # A set whose install failed is tried again next tick, unless a newer one supersedes it.
+        ready, self._retry_install = self.worker.take_ready() or self._retry_install, None
+        if ready is not None:
+            try:
+                self._install(ready)
+            except Exception as error:
+                self._report_error("install", error)
+                self._retry_install = ready
+
+    def _on_rebuild_failed(self, scene: SceneSpec, message: str):
+        """A requested model set could not be built: the running one stays. If the parameters still ask for the
+        failed set, set them back to the running set's values, so `ros2 param get` shows what runs."""
+        self.stats.counts["rebuild_failures"] += 1
+        self._warn("rebuild", message + "; the running garment models stay")
+        if scene_key(scene) != scene_key(self._scene()):
+            return  # the parameters have moved on since: their own build decides
+        rollback = [p for p in self._running_parameters if p.value != self.get_parameter(p.name).value]
+        if not rollback:
+            return
+        results = self.set_parameters(rollback)
+        if all(r.successful for r in results):
+            self.stats.counts["parameter_rollbacks"] += 1
+            self._warn("rollback", "parameters set back to the running garment models: "
+                       + ", ".join(f"{p.name}={p.value!r}" for p in rollback))
+        else:
+            self._warn("rollback", "cannot set the parameters back to the running garment models: "
+                       + "; ".join(r.reason for r in results if not r.successful))
 
     # ---- inputs --------------------------------------------------------------------------------------------------
     def _warn(self, key: str, message: str):
@@ -236,6 +324,20 @@ class AgentDressNode(Node):
         if allowed:
             suffix = f" ({held} similar messages suppressed)" if held else ""
             self.get_logger().warning(message + suffix)
+
+    def _report_error(self, where: str, error: BaseException):
+        """An exception caught at `where`: counted on ~/status (errors), logged (throttled) with its reason."""
+        self.stats.errors[where] += 1
+        self._warn(f"error/{where}", f"{where}: {error!r} (caught; the node goes on with the last good models)")
+
+    def _guarded(self, where: str, callback):
+        """`callback` for an executor: what it raises is reported, never passed to the spin (which would end)."""
+        def run(*args):
+            try:
+                callback(*args)
+            except Exception as error:
+                self._report_error(where, error)
+        return run
 
     def _reject(self, topic: str, error: InputRejected):
         self.stats.rejected[f"{topic}/{error.reason}"] += 1
@@ -246,20 +348,31 @@ class AgentDressNode(Node):
         try:
             unknown = self.pose.accept(msg.name, msg.position, stamp_to_ns(msg.header.stamp.sec,
                                                                               msg.header.stamp.nanosec))
-            if unknown:  # reported once per name, never throttled away
-                self.stats.counts["unknown_joint_names"] += len(unknown)
-                self.get_logger().warning(f"ignoring unknown joint names (reported once): {', '.join(unknown)}")
         except InputRejected as error:
             self._reject("joint_states", error)
             return
         except Exception as error:  # never let a message kill the node
             self._reject("joint_states", InputRejected("internal_error", repr(error)))
             return
+        if unknown:  # each name once (the names listed on ~/status); the log line throttled like every warning
+            self.stats.counts["unknown_joint_names"] += len(unknown)
+            shown = ", ".join(unknown[:10]) + (f" and {len(unknown) - 10} more" if len(unknown) > 10 else "")
+            self._warn("joint_states/unknown_names", f"ignoring unknown joint names: {shown}")
+        if self.pose.timeline_jump_ns:
+            self._on_new_timeline(self.pose.timeline_jump_ns)
         # Answer now rather than at the next tick (up to a period later). Arrivals closer than half a period to
         # the last answer wait for the timer, which dresses the newest one: a flood cannot exceed twice rate_hz,
         # and a sender at rate_hz (jittering around one period) is still answered on arrival.
         if self.config["answer_on_arrival"] and time.monotonic() - self._last_compute >= 0.5 / self.config["rate_hz"]:
             self._on_tick(from_timer=False)
+
+    def _on_new_timeline(self, jump_ns: int):
+        """The stamps jumped (looped bag, clock reset, a stamp from the future): a cut in the motion."""
+        self.stats.counts["new_timelines"] += 1
+        self._warn("joint_states/new_timeline", f"JointState stamps jumped {'back' if jump_ns < 0 else 'forward'} by "
+                   f"{abs(jump_ns) * 1e-9:.3f} s (more than stamp_jump_threshold_s): following the new timeline")
+        for model in self.models.values():
+            model.reset()  # the motion history (decay) belongs to the old timeline
 
     def _on_shape(self, msg: Float32MultiArray):
         self.stats.counts["shapes_received"] += 1
@@ -282,14 +395,12 @@ class AgentDressNode(Node):
         now = time.monotonic()
         if from_timer:  # the tick-rate statistics describe the timer, not the arrivals
             self.stats.tick(now, 1.0 / self.config["rate_hz"])
-        ready = self.worker.take_ready()
-        if ready is not None:
-            self._install(ready)
+        self._take_worker_news()
         if self.pose.version == self._done_version and not self._dirty:
             keepalive = self.config["keepalive_hz"]
             if keepalive > 0 and now - self._last_publish >= 1.0 / keepalive and self.clouds:
                 for name, cloud in self.clouds.items():
-                    self.point_pubs[name].publish(cloud)
+                    self._publish_cloud(name, cloud)
                 self.stats.counts["keepalive_frames"] += 1
                 self._last_publish = now
             self.stats.counts["idle_ticks"] += 1
@@ -312,19 +423,35 @@ class AgentDressNode(Node):
                 if problem == "non_finite_output":
                     self._warn(f"nonfinite/{name}", f"{name}: synthesis produced non-finite vertices; "
                                                     "re-sending the last good frame")
-            if frame is None:
-                continue
-            cloud = self.clouds.get(name)
-            if cloud is None:
-                cloud = self.clouds[name] = make_point_cloud()
-            set_cloud_vertices(cloud, frame, stamp, self.config["frame_id"])
-            self.point_pubs[name].publish(cloud)
+            if frame is not None:
+                self._publish_frame(name, frame, stamp)
         self.stats.counts["published_frames"] += 1
         self.stats.counts["computed_ticks"] += 1
         self.stats.synthesis_ms.append(1e3 * synthesis)
         self.stats.tick_ms.append(1e3 * (time.perf_counter() - start))
         self._done_version, self._dirty, self._last_publish = self.pose.version, False, now
         self._last_compute = now
+
+    def _publish_frame(self, name: str, frame, stamp):
+        """Pack `frame` into the garment's (reused) cloud and publish it. A cloud whose packing failed may be half
+        written: it is dropped (never re-sent by the keep-alive) and a fresh one made next time."""
+        cloud = self.clouds.get(name)
+        try:
+            if cloud is None:
+                cloud = make_point_cloud()
+            set_cloud_vertices(cloud, frame, stamp, self.config["frame_id"])
+        except Exception as error:
+            self.clouds.pop(name, None)
+            self._report_error(f"pack/{name}", error)
+            return
+        self.clouds[name] = cloud
+        self._publish_cloud(name, cloud)
+
+    def _publish_cloud(self, name: str, cloud):
+        try:
+            self.point_pubs[name].publish(cloud)
+        except Exception as error:
+            self._report_error(f"publish/{name}", error)
 
     # ---- status and markers --------------------------------------------------------------------------------------
     def status(self) -> dict:
@@ -340,6 +467,7 @@ class AgentDressNode(Node):
             "keepalive_frames": counts.pop("keepalive_frames", 0),
             "late_ticks": counts.pop("late_ticks", 0),
             "rejected": dict(self.stats.rejected),
+            "errors": dict(self.stats.errors),
             "counts": counts,
             "unknown_joint_names": sorted(self.pose.unknown_names)[:50],
             "garments": {n: {"kind": m.kind, "vertices": m.n_vertices, "faces": len(m.faces),
@@ -353,9 +481,17 @@ class AgentDressNode(Node):
     def _on_status(self):
         self.status_pub.publish(String(data=json.dumps(self.status())))
 
+    def _start_marker_thread(self):
+        self._marker_thread = threading.Thread(target=self._marker_loop, name="agentdress-marker", daemon=True)
+        self._marker_thread.start()
+
     def _on_marker(self):
         if self.marker_pub is None:
             return
+        if not self._marker_thread.is_alive():  # it died of something the loop does not catch: start a new one
+            self.stats.counts["marker_restarts"] += 1
+            self._warn("marker_thread", "the marker thread had died: restarted")
+            self._start_marker_thread()
         # Snapshot references only; the marker thread builds the messages (tens of ms each) off the executor.
         frames = {n: (self.guard.last_good[n].copy(), self.models[n].faces) for n in self.models
                   if n in self.guard.last_good}
@@ -371,13 +507,17 @@ class AgentDressNode(Node):
             job, self._marker_job = self._marker_job, None
             if job is None:
                 continue
-            frames, stamp, frame_id = job
-            colors = ((0.2, 0.45, 0.85, 1.0), (0.25, 0.25, 0.3, 1.0), (0.85, 0.4, 0.2, 1.0), (0.9, 0.75, 0.6, 1.0))
-            for i, (name, (vertices, faces)) in enumerate(frames.items()):
-                marker = make_marker(vertices, faces, name, i, frame_id, stamp, colors[i % len(colors)])
-                with self._lock:
-                    if self.marker_pub is not None:
-                        self.marker_pub.publish(marker)
+            try:
+                self._publish_markers(*job)
+            except Exception as error:  # the next job is a fresh try; the thread goes on
+                self._report_error("marker_thread", error)
+
+    def _publish_markers(self, frames, stamp, frame_id):
+        for i, (name, (vertices, faces)) in enumerate(frames.items()):
+            marker = make_marker(vertices, faces, name, i, frame_id, stamp, MARKER_COLORS[i % len(MARKER_COLORS)])
+            with self._lock:
+                if self.marker_pub is not None:
+                    self.marker_pub.publish(marker)
 
     def destroy_node(self):
         self.worker.stop()

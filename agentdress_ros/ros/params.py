@@ -59,6 +59,9 @@ PARAMETERS: dict[str, Spec] = {
                                     "template (warned) instead of exiting with an error"),
     "shape": Spec([0.5, 2.0 / 3.0, 0.5, 0.5, 0.5, 0.5], "initial body shape (gender, age, muscle, weight, height, "
                                                   "proportions), each in [0, 1]; setting it changes the shape"),
+    "stamp_jump_threshold_s": Spec(0.5, "a JointState stamp this far (s) before or after the last accepted one "
+                                        "starts a new timeline (looped bag, clock reset): accepted, warned and "
+                                        "counted; closer older stamps are rejected as out of order; in (0, 86400]"),
     "warn_throttle_s": Spec(5.0, "at most one warning per kind per this many seconds, in (0, 3600]"),
     "qos.joint_states.reliability": Spec("best_effort", "JointState subscription reliability", runtime=False),
     "qos.joint_states.depth": Spec(1, "JointState subscription depth (keep last)", runtime=False),
@@ -166,6 +169,8 @@ def validate(name: str, value):
         return _number(name, value, 0.0, 10.0)
     if name == "status_rate_hz":
         return _number(name, value, 0.0, 50.0, low_open=True)
+    if name == "stamp_jump_threshold_s":
+        return _number(name, value, 0.0, 86400.0, low_open=True)
     if name == "warn_throttle_s":
         return _number(name, value, 0.0, 3600.0, low_open=True)
     if name in ("publish_body", "skinned_fallback", "answer_on_arrival"):

@@ -14,6 +14,9 @@ HTTP endpoints (what the page polls; also handy for tests and scripts):
   /faces/<name> the faces (F, 3) of a mesh as little-endian uint32
   /frame?since=<seq>  long-poll (<= 1 s) for the next frame: uint32 header length, JSON header (names, vertex
                  counts, byte offsets, seq, topology), then each mesh's vertices (V, 3) as little-endian float32
+A malformed request (a `since` that is not an integer, a broken request line) gets 400, an unknown path 404, a
+method other than GET 405; the server goes on. It has no authentication: serving beyond this machine (--host other
+than a loopback address) prints a warning.
 
 The viewer discovers `<node>/<name>/mesh` topics (transient local: a late viewer still gets the topology) and the
 matching `<node>/<name>/points` streams.
@@ -21,6 +24,7 @@ matching `<node>/<name>/points` streams.
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 import re
 import sys
@@ -30,7 +34,7 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-__all__ = ["SceneState", "build_parser", "make_server", "view_main"]
+__all__ = ["SceneState", "build_parser", "exposure_warning", "make_server", "view_main"]
 
 COLORS = {"body": [0.85, 0.68, 0.56], "tshirt": [0.22, 0.45, 0.85], "longsleeve": [0.2, 0.65, 0.45],
           "trousers": [0.28, 0.28, 0.35]}
@@ -172,12 +176,27 @@ def _handler(state: SceneState):
                     else:
                         self._send(faces.tobytes(), "application/octet-stream")
                 elif url.path == "/frame":
-                    since = int(parse_qs(url.query).get("since", ["-1"])[0])
+                    text = parse_qs(url.query, keep_blank_values=True).get("since", ["-1"])[0]
+                    try:
+                        since = int(text)
+                    except ValueError:
+                        self._send(f"bad request: since={text[:40]!r} is not an integer".encode(), "text/plain", 400)
+                        return
                     self._send(state.frame(since), "application/octet-stream")
                 else:
                     self._send(b"not found", "text/plain", 404)
             except (BrokenPipeError, ConnectionResetError):
                 pass
+            except Exception as error:  # a bug answers 500 instead of dropping the connection; the server goes on
+                self._send(f"internal error: {error!r}".encode(), "text/plain", 500)
+
+        def _not_allowed(self):
+            self.send_response(405)
+            self.send_header("Allow", "GET")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+
+        do_POST = do_PUT = do_DELETE = do_PATCH = do_HEAD = do_OPTIONS = _not_allowed
 
     return Handler
 
@@ -186,6 +205,18 @@ def make_server(state: SceneState, host: str = "127.0.0.1", port: int = 8765) ->
     server = ThreadingHTTPServer((host, port), _handler(state))
     server.daemon_threads = True
     return server
+
+
+def exposure_warning(host: str) -> str:
+    """'' for a loopback host, else the warning that anyone reaching the address sees the stream."""
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name other than localhost: may resolve to anything
+        loopback = False
+    if loopback:
+        return ""
+    return (f"agentdress view: warning: serving on {host or '0.0.0.0'}, beyond this machine; the viewer has no "
+            "authentication: anyone who can reach this address sees the stream")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -210,6 +241,9 @@ def view_main(argv=None) -> int:
     except OSError as error:
         print(f"agentdress view: error: cannot serve on {args.host}:{args.port} ({error})", file=sys.stderr)
         return 2
+    warning = exposure_warning(args.host)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     rclpy.init(args=["agentdress_viewer", *ros_args])
     bridge = RosBridge(state, args.node)
     threading.Thread(target=server.serve_forever, name="agentdress-http", daemon=True).start()
