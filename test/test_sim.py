@@ -192,10 +192,12 @@ def test_animated_collider_carries_the_cloth_out_of_where_skinning_puts_it_insid
     assert ended["truly_inside_count"] == 0
 
 
-@needs_newton
-def test_a_resumed_sequence_gives_the_frames_of_an_uninterrupted_run(body, arms_down, tmp_path):
+@pytest.fixture(scope="module")
+def swing_sequences(body, arms_down, tmp_path_factory):
+    """A 7-frame motion (arms swinging down while the root moves 30 cm) simulated twice in chunks of 3 frames:
+    once uninterrupted, once stopped after the first chunk and resumed. -> (folder, garment, motion)."""
     from agentdress_ros.motion.skeleton import Motion
-    from agentdress_ros.sim.sequence import SequenceSettings, load_sequence, simulate_sequence
+    from agentdress_ros.sim.sequence import SequenceSettings, simulate_sequence
 
     garment, pose, *_ = arms_down
     t = np.linspace(0.0, 1.0, 7)[:, None, None]
@@ -203,18 +205,49 @@ def test_a_resumed_sequence_gives_the_frames_of_an_uninterrupted_run(body, arms_
                     fps=30.0, name="swing")
     settings = SequenceSettings(chunk_frames=3, ramp_frames=4, settle_frames=10,
                                 drape=DrapeSettings(substeps=4, iterations=2))
-    whole = simulate_sequence(motion, garment, body.shape().beta, tmp_path / "whole", settings, body=body,
-                              progress=False)
-    assert whole["chunks"] == 3 and whole["frames"] == 7
-    first = simulate_sequence(motion, garment, body.shape().beta, tmp_path / "resumed", settings, body=body,
-                              max_chunks=1, progress=False)
-    assert first["chunks"] == 1
-    rest_of_it = simulate_sequence(motion, garment, body.shape().beta, tmp_path / "resumed", settings, body=body,
-                                   progress=False)
-    assert rest_of_it["chunks"] == 2
-    a, b = load_sequence(tmp_path / "whole"), load_sequence(tmp_path / "resumed")
+    folder = tmp_path_factory.mktemp("sequences")
+    beta = body.shape().beta
+    runs = {"whole": simulate_sequence(motion, garment, beta, folder / garment.name / "whole", settings, body=body,
+                                       progress=False),
+            "first": simulate_sequence(motion, garment, beta, folder / garment.name / "resumed", settings,
+                                       body=body, max_chunks=1, progress=False),
+            "rest": simulate_sequence(motion, garment, beta, folder / garment.name / "resumed", settings, body=body,
+                                      progress=False)}
+    return folder, garment, motion, runs
+
+
+@needs_newton
+def test_a_resumed_sequence_gives_the_frames_of_an_uninterrupted_run(swing_sequences):
+    from agentdress_ros.sim.sequence import load_sequence
+
+    folder, garment, motion, runs = swing_sequences
+    assert runs["whole"]["chunks"] == 3 and runs["whole"]["frames"] == 7
+    assert runs["first"]["chunks"] == 1 and runs["rest"]["chunks"] == 2
+    a, b = load_sequence(folder / garment.name / "whole"), load_sequence(folder / garment.name / "resumed")
     assert np.array_equal(a["positions"], b["positions"])
     assert np.isfinite(a["positions"]).all() and a["positions"].shape == (7, garment.n_vertices, 3)
     np.testing.assert_allclose(a["root_velocity"][:, 1], -0.3 * 30.0 / 6.0, rtol=1e-5)
     # the cloth moved with the body (root translation of 30 cm)
     assert abs(a["positions"][-1, :, 1].mean() - a["positions"][0, :, 1].mean() + 0.3) < 0.05
+    assert runs["whole"]["max_cloth_speed"] > 0.0 and runs["whole"]["max_body_speed"] > 0.0
+
+
+@needs_newton
+def test_sequence_pack_restores_the_cloth_from_rest_frame_pca(body, swing_sequences, tmp_path):
+    """The pack holds rest-frame offsets (unposed with beta0's bones) as float16 PCA coefficients: skinning them
+    back reproduces every simulated frame to well under a millimetre."""
+    from agentdress_ros.body.kinematics import linear_blend_skinning
+    from agentdress_ros.build.sequences import load_sequence_pack, pack_sequences
+    from agentdress_ros.sim.sequence import load_sequence
+
+    folder, garment, motion, _ = swing_sequences
+    report = pack_sequences(folder, garment.name, garment.n_vertices, tmp_path / "pack.npz", components=13)
+    assert report["frames"] == 14 and report["clips"] == 2 and report["components"] == 13
+    pack = load_sequence_pack(tmp_path / "pack.npz")
+    truth = load_sequence(folder / garment.name / "whole")
+    shape = body.shape()
+    for f in range(7):
+        transforms, _ = body.pose(shape, truth["rotvecs"][f].astype(float), truth["root_translation"][f].astype(float))
+        rest = pack["rest"].astype(float) + pack["offsets"][f]
+        posed = linear_blend_skinning(rest, garment.skin_indices, garment.skin_weights, transforms, np.empty_like(rest))
+        assert np.abs(posed - truth["positions"][f]).max() < 5e-4

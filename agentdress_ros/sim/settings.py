@@ -75,8 +75,10 @@ class DrapeSettings:
       mean from the reference; 8 x 4 was 6.4 mm off, 8 x 3 10 mm, 4 x 20 (4x the cost) 9.6 mm, 16 x 1 and 32 x 1
       stopped early (5 mm/s is reached while still creeping) 16-19 mm off. Thresholds of 1 cm/s stop 1-2 cm short.
     Animated collider:
-      ramp_frames         frames over which a build carries the body (and the cloth) from the rest pose into the
-                          target pose before settling, 30 (0: a static collider in the pose; see `drape`).
+      ramp_frames         frames over which a drape job carries the body (and the cloth) from the rest pose into
+                          the target pose before settling (`drape(body_path=...)`); 0, the default, keeps the
+                          static collider the shipped databases were built with. Drapes from the skinned garment
+                          only: a warm start from a finished drape starts in the pose.
     Stopping:
       max_frames          frame budget, 360 (6 s simulated); a drape that hits it reports converged=False.
       min_frames          never stop before this frame, 10 (gravity needs a few frames to act on a warm start).
@@ -121,7 +123,7 @@ class DrapeSettings:
     iterations: int = 2
     velocity_retention: float = 0.9
 
-    ramp_frames: int = 30
+    ramp_frames: int = 0
     max_frames: int = 360
     min_frames: int = 10
     speed_percentile: float = 99.0
