@@ -22,6 +22,7 @@ from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
 from shape_msgs.msg import Mesh  # noqa: E402
 from std_msgs.msg import Float32MultiArray, String  # noqa: E402
 
+from agentdress_ros.display.models import dress_for_display  # noqa: E402
 from agentdress_ros.motion.joint_names import pose_to_joint_positions  # noqa: E402
 from agentdress_ros.motion.procedural import make_motion  # noqa: E402
 from agentdress_ros.ros.harness import ChildProcess, node_args, ros_env, ros_node, spin_until  # noqa: E402
@@ -30,6 +31,7 @@ from agentdress_ros.ros.messages import cloud_to_vertices, mesh_to_arrays  # noq
 DOMAIN_ID = random.SystemRandom().randint(1, 200)
 VERTICES = {"tshirt": 1500, "trousers": 1200}
 START_SHAPE = [0.5, 0.6667, 0.5, 0.5, 0.5, 0.5]  # config/agentdress.yaml
+SUBDIVISION = 1  # display_subdivision, config/agentdress.yaml
 BEST_EFFORT = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
 TOPOLOGY = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -55,7 +57,9 @@ def models(body):
     from agentdress_ros.garment import make_garment
     from agentdress_ros.ros.garment_models import SkinnedGarmentModel
 
-    return {name: SkinnedGarmentModel(make_garment(name, body, n), body, START_SHAPE) for name, n in VERTICES.items()}
+    # what the node publishes: the templates layered (T-shirt out of the trousers) and refined for display
+    return dress_for_display({name: SkinnedGarmentModel(make_garment(name, body, n), body, START_SHAPE)
+                              for name, n in VERTICES.items()}, body, {}, SUBDIVISION)
 
 
 @pytest.fixture(scope="module")
@@ -130,7 +134,7 @@ def test_topology_reaches_a_late_subscriber(client, models):
         np.testing.assert_array_equal(faces, model.faces)
 
 
-def test_shape_message_refits_the_garments(client, models):
+def test_shape_message_refits_the_garments(client, models, body):
     node, executor, joints, shapes, state = client
     beta = [0.5, 0.5, 0.5, 0.9, 0.5, 0.5]  # heavier
     shapes.publish(Float32MultiArray(data=beta))
@@ -138,8 +142,9 @@ def test_shape_message_refits_the_garments(client, models):
                       20.0), f"status shape stayed {state['status'][-1]['shape']}"
     motion = make_motion("walk", fps=30.0)
     vertices, _ = publish_pose_until_answered(client, motion.rotvecs[3], motion.root_translation[3])
+    twins = dress_for_display({name: model.clone() for name, model in models.items()}, body, {}, SUBDIVISION)
     for name, model in models.items():
-        twin = model.clone()
+        twin = twins[name]
         twin.set_shape(beta)
         np.testing.assert_allclose(vertices[name], twin.synthesize(motion.rotvecs[3], motion.root_translation[3]),
                                    atol=1e-5, err_msg=name)
@@ -161,7 +166,10 @@ def test_status_and_keepalive(client, models):
     assert status["synthesis_ms"]["p50"] is not None and status["synthesis_ms"]["p99"] < 50.0
     assert status["keepalive_frames"] >= 1
     for name, model in models.items():  # the template's own topology, built here
-        assert status["garments"][name] == {"kind": "skinned", "vertices": VERTICES[name], "faces": len(model.faces)}
+        garment = status["garments"][name]
+        assert {k: garment[k] for k in ("kind", "vertices", "faces")} == {
+            "kind": "skinned", "vertices": VERTICES[name], "faces": len(model.faces)}
+        assert garment["shape_limits"] is None  # a skinned template follows every shape in [0, 1]
     repeated = state["clouds"]["tshirt"][before["tshirt"]:]
     assert repeated, "no keep-alive clouds"
     stamps = {(c.header.stamp.sec, c.header.stamp.nanosec) for c in repeated}
@@ -224,7 +232,7 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
     if not database.is_file():
         pytest.skip(f"{database} is not built")
     domain = DOMAIN_ID + 1
-    params = {"garments": ["tshirt"], "garment_databases": [f"tshirt:{database}"],
+    params = {"garments": ["tshirt"], "garment_databases": [f"tshirt:{database}"], "display_subdivision": 0,
               "engine": ["pose_model=examples", "neighbors=3", "decay=false"], "status_rate_hz": 4.0}
     child = ChildProcess(node_args(params), ros_env(domain, str(tmp_path / "log")), tmp_path / "node.log")
     try:
@@ -240,8 +248,10 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
             joints = node.create_publisher(JointState, "joint_states", 10)
             assert spin_until(executor, lambda: joints.get_subscription_count() > 0 and state["status"], 30.0)
             db = read_database(database)
-            assert state["status"][-1]["garments"]["tshirt"] == {"kind": "database", "vertices": db.n_vertices,
-                                                                 "faces": len(db.faces)}
+            garment = state["status"][-1]["garments"]["tshirt"]
+            assert {k: garment[k] for k in ("kind", "vertices", "faces")} == {
+                "kind": "database", "vertices": db.n_vertices, "faces": len(db.faces)}
+            assert garment["shape_limits"] == {"clamped": [], "held": []}  # beta0 lies in every training range
             motion = make_motion("wave", fps=30.0)
             rotvecs, translation = motion.rotvecs[10], motion.root_translation[10]
             vertices, _ = publish_pose_until_answered((node, executor, joints, None, state), rotvecs, translation)

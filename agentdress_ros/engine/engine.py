@@ -31,6 +31,11 @@ from .pose_models import PoseModelContext, canonical_poses, make_pose_model
 N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-zero regions
 
 
+# Phenotype differences below this are not reported as clamped or held: float32 round-off of a shape message and
+# 4-digit values in YAML (age 0.6667 for beta0's 2/3) change the body by far less than a millimetre.
+SHAPE_REPORT_TOLERANCE = 1e-3
+
+
 @dataclass(frozen=True)
 class ShapeReport:
     """What set_shape did.
@@ -194,7 +199,7 @@ class Engine:
 
     Attributes after construction: `db` (the level-of-detail/anchor-subset database actually used), `faces` (F, 3),
     `n_vertices`, `pose_model`, `shape_report` (the last set_shape), `bad_frames` (frames rejected for non-finite
-    output; the previous good frame was returned instead, which never happened in tests).
+    output; the previous good frame was returned instead: test_faults.py makes it happen).
     """
 
     def __init__(self, db: Database, body: AnnyBody, config: EngineConfig = EngineConfig()):
@@ -332,8 +337,8 @@ class Engine:
         model_beta = np.clip(effective, *db.beta_range.T) if config.clamp_to_training_range else effective
         if not self._residual:  # no fit apart from the shape models: the garment, and so the body, are held too
             effective = model_beta
-        clamped_names = tuple(names[i] for i in np.flatnonzero(effective != requested))
-        held_names = tuple(names[i] for i in np.flatnonzero(model_beta != effective))
+        clamped_names = tuple(names[i] for i in np.flatnonzero(np.abs(effective - requested) > SHAPE_REPORT_TOLERANCE))
+        held_names = tuple(names[i] for i in np.flatnonzero(np.abs(model_beta - effective) > SHAPE_REPORT_TOLERANCE))
 
         shape = self.body.shape(effective)
         heads = np.ascontiguousarray(shape.heads, dtype=np.float64)

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..body import PHENOTYPE_NAMES
+from ..scene.lod import DEFAULT_TIER_TEXT, parse_tiers
 
 __all__ = ["PARAMETERS", "ParameterError", "Spec", "parse_garment_map", "validate"]
 
@@ -55,6 +56,12 @@ PARAMETERS: dict[str, Spec] = {
     "engine": Spec(["pose_model=examples"], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
                        "examples), neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
                        "(float32, float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
+    "display_subdivision": Spec(1, "rounds of Loop subdivision (0, 1, 2) of each garment for display, published as "
+                                   "its cloud and mesh (a fixed sparse matrix after penetration handling; README "
+                                   "'Display')", runtime=False),
+    "garment_layers": Spec([], "per-garment layer 'name:layer' (templates: trousers 1, tshirt and longsleeve 2); a "
+                               "garment is pushed out of the next lower layer's; tucked in: ['trousers:3']",
+                           runtime=False),
     "skinned_fallback": Spec(False, "if a garment's database is missing or unusable, dress it with the skinned "
                                     "template (warned) instead of exiting with an error"),
     "shape": Spec([0.5, 2.0 / 3.0, 0.5, 0.5, 0.5, 0.5], "initial body shape (gender, age, muscle, weight, height, "
@@ -69,6 +76,24 @@ PARAMETERS: dict[str, Spec] = {
     "qos.shape.depth": Spec(1, "body shape subscription depth (keep last)", runtime=False),
     "qos.points.reliability": Spec("best_effort", "PointCloud2 publisher reliability", runtime=False),
     "qos.points.depth": Spec(1, "PointCloud2 publisher depth (keep last)", runtime=False),
+    # Crowd mode (agentdress_ros.ros.crowd): one node dresses every agent listed.
+    "agents": Spec([], "agent names: each has <agent>/joint_states, <agent>/body_shape in and ~/<agent>/<garment>/"
+                       "points, mesh out, taking the parameters above overridden by agent.<agent>.<parameter> (YAML); "
+                       "agents may be added and removed at run time; empty = the single agent of today's topics"),
+    "viewer_topic": Spec("viewer_pose", "geometry_msgs/PoseStamped input of the viewer (headset), crowd mode; "
+                                        "empty = no viewer (every agent near, none culled)", runtime=False),
+    "viewer_offset": Spec([0.0, 0.0, 0.0, 0.0], "fixed offset x, y, z (m), yaw (rad) taking viewer poses into the "
+                                                "agents' frame (there is no tf2 wheel)"),
+    "budget_ms": Spec(8.0, "frame budget of the crowd tick, ms: far agents are lowered or updated on alternate ticks "
+                           "to hold it, near ones never; 0 = no budget"),
+    "lod.enabled": Spec(True, "levels of detail and culling by the viewer's pose (false: every agent fully dressed)"),
+    "lod.tiers": Spec(list(DEFAULT_TIER_TEXT), "tiers by distance, '<name> <max m|inf> <synthesis|skinned> "
+                                               "[neighbors=n] [penetration=false] [every=n] ...'", runtime=False),
+    "lod.hysteresis": Spec(0.5, "metres an agent must pass a tier boundary by before it changes tier"),
+    "lod.fade_frames": Spec(6, "frames over which a tier change cross-fades (0: switch at once)", runtime=False),
+    "lod.fov_deg": Spec(110.0, "the viewer's field of view, degrees (agents outside it, plus the margin, are culled)"),
+    "lod.margin_deg": Spec(10.0, "margin added to each side of the field of view, degrees"),
+    "lod.cull": Spec(True, "cull agents outside the field of view"),
 }
 
 
@@ -107,7 +132,7 @@ def parse_garment_map(name: str, value) -> dict[str, str]:
 # EngineConfig fields settable from a parameter, with their coercion (the rest are library-only).
 _ENGINE_FIELDS = {
     "pose_model": str, "taylor": str, "dtype": str,
-    "neighbors": int, "components": int, "anchors": int,
+    "neighbors": int, "pose_neighbors": int, "components": int, "anchors": int,
     "shape_model": bool, "penetration": bool, "decay": bool, "clamp_to_training_range": bool,
     "damping": float, "penetration_margin": float, "power": float,
 }
@@ -173,7 +198,39 @@ def validate(name: str, value):
         return _number(name, value, 0.0, 86400.0, low_open=True)
     if name == "warn_throttle_s":
         return _number(name, value, 0.0, 3600.0, low_open=True)
-    if name in ("publish_body", "skinned_fallback", "answer_on_arrival"):
+    if name == "agents":
+        agents = _string_list(name, value)
+        for a in agents:
+            if not _GARMENT_NAME.match(a):
+                raise ParameterError(f"agents: {a!r} is not a valid agent name (a letter, then letters, digits, _)")
+        if len(set(agents)) != len(agents):
+            raise ParameterError(f"agents: names repeat in {agents}")
+        return agents
+    if name == "viewer_topic":
+        if not isinstance(value, str):
+            raise ParameterError(f"viewer_topic must be a string, got {value!r}")
+        return value.strip()
+    if name == "viewer_offset":
+        if value is None or isinstance(value, (str, bool)) or len(value) != 4:
+            raise ParameterError(f"viewer_offset must be four numbers x, y, z, yaw, got {value!r}")
+        return [_number(name, v, -1e6, 1e6) for v in value]
+    if name == "budget_ms":
+        return _number(name, value, 0.0, 1000.0)
+    if name == "lod.tiers":
+        try:
+            parse_tiers(_string_list(name, value))
+        except ValueError as error:
+            raise ParameterError(f"lod.tiers: {error}") from None
+        return _string_list(name, value)
+    if name == "lod.hysteresis":
+        return _number(name, value, 0.0, 100.0)
+    if name == "lod.fade_frames":
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 100:
+            raise ParameterError(f"lod.fade_frames must be an integer in [0, 100], got {value!r}")
+        return value
+    if name in ("lod.fov_deg", "lod.margin_deg"):
+        return _number(name, value, 0.0, 360.0)
+    if name in ("publish_body", "skinned_fallback", "answer_on_arrival", "lod.enabled", "lod.cull"):
         if not isinstance(value, bool):
             raise ParameterError(f"{name} must be true or false, got {value!r}")
         return value
@@ -202,6 +259,18 @@ def validate(name: str, value):
         return budgets
     if name == "garment_databases":
         return parse_garment_map(name, value)
+    if name == "display_subdivision":
+        if isinstance(value, bool) or value not in (0, 1, 2):
+            raise ParameterError(f"display_subdivision must be 0, 1 or 2, got {value!r}")
+        return int(value)
+    if name == "garment_layers":
+        layers = {}
+        for key, item in parse_garment_map(name, value).items():
+            try:
+                layers[key] = int(item)
+            except ValueError:
+                raise ParameterError(f"garment_layers: {key}: {item!r} is not an integer") from None
+        return layers
     if name == "engine":
         return parse_engine(value)
     if name == "shape":
