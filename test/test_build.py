@@ -108,29 +108,123 @@ def test_killed_build_resumes_to_the_same_database(tiny_build, tmp_path):
         np.testing.assert_array_equal(getattr(resumed, field), getattr(reference, field), err_msg=field)
 
 
-def test_resuming_with_other_parameters_is_refused(tiny_build, tmp_path):
-    out = tmp_path / "db.h5"
+def _copy_work(tiny_build, tmp_path, drapes=True) -> Path:
+    """A copy of the tiny build's work folder (plan, and its drapes if asked) for `tmp_path / "db.h5"`."""
+    import shutil
+
+    source = tiny_build[0].parent / "tiny.h5.work"
     work = tmp_path / "db.h5.work"
     work.mkdir()
-    (work / "plan.pkl").write_bytes((tiny_build[0].parent / "tiny.h5.work" / "plan.pkl").read_bytes())
-    with pytest.raises(ValueError, match="belongs to a build with other parameters"):
-        build_database(BuildConfig(**{**TINY, "anchors": 3}), out, workers=0, progress=False)
+    for name in ("plan.json", "plan.npz"):
+        shutil.copy(source / name, work / name)
+    if drapes:
+        shutil.copytree(source / "drapes", work / "drapes")
+    return work
 
 
-def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(tiny_build, tmp_path):
+def test_resuming_with_other_parameters_is_refused(tiny_build, tmp_path):
+    _copy_work(tiny_build, tmp_path, drapes=False)
+    with pytest.raises(ValueError, match="belongs to a build with other parameters(.|\n)*parameters.anchors: 2 -> 3"):
+        build_database(BuildConfig(**{**TINY, "anchors": 3}), tmp_path / "db.h5", workers=0, progress=False)
+
+
+def test_plan_is_json_and_npz_keyed_by_what_changes_a_drape(tiny_build):
+    """No pickle: the plan is plan.json (key, report) + plan.npz (arrays, loadable without pickle); the key holds
+    the build parameters, the versions of anny, newton and warp and the garment template's hash."""
+    from importlib.metadata import version
+
+    out, _ = tiny_build
+    work = out.parent / "tiny.h5.work"
+    assert not list(work.glob("*.pkl")) and not list(work.glob("*.partial*"))
+    stored = json.loads((work / "plan.json").read_text())
+    with np.load(work / "plan.npz", allow_pickle=False) as plan:
+        assert plan["anchors"].shape == (2, 31, 3) and plan["shapes"].shape == (5, 6)
+    environment = stored["key"]["environment"]
+    assert environment["anny"] == version("anny") and environment["newton"] == version("newton")
+    assert environment["warp"] == version("warp-lang") and len(environment["garment_template"]) == 64
+    assert stored["key"]["parameters"] == json.loads(BuildConfig(**TINY).plan_key())
+    assert read_database(out).provenance["drape_environment"] == environment
+
+
+@pytest.mark.parametrize("entry, value", [("newton", "0.0.1"), ("garment_template", "0" * 64)])
+def test_resumed_build_under_another_drape_key_says_so(tiny_build, tmp_path, entry, value):
+    """A newton upgrade or a changed garment generator: the finished drapes are stale and are never reused."""
+    work = _copy_work(tiny_build, tmp_path)
+    stored = json.loads((work / "plan.json").read_text())
+    current = stored["key"]["environment"][entry]
+    stored["key"]["environment"][entry] = value
+    (work / "plan.json").write_text(json.dumps(stored))
+    before = {p.name: p.stat().st_mtime_ns for p in (work / "drapes").glob("*.npz")}
+    with pytest.raises(ValueError, match=f"made under another drape key; its {len(before)} finished drapes are not "
+                                         f"reused(.|\n)*environment.{entry}: \"{value}\" -> \"{current}\""):
+        build_database(BuildConfig(**TINY), tmp_path / "db.h5", workers=0, progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in (work / "drapes").glob("*.npz")} == before
+    assert not (tmp_path / "db.h5").exists()
+
+
+class _RunsCode:
+    """Unpickling this creates a folder: proof that a pickle was loaded."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return os.mkdir, (self.marker,)
+
+
+def test_pickled_plan_is_never_loaded(tmp_path):
+    import pickle
+
+    work = tmp_path / "db.h5.work"
+    (work / "drapes").mkdir(parents=True)
+    (work / "plan.pkl").write_bytes(pickle.dumps({"config": "{}", "plan": _RunsCode(tmp_path / "ran")}))
+    with pytest.raises(ValueError, match="pickled plan \\(plan.pkl\\) of an older agentdress, which is not loaded"):
+        build_database(BuildConfig(**TINY), tmp_path / "db.h5", workers=0, progress=False)
+    assert not (tmp_path / "ran").exists()
+
+
+def test_drapes_without_a_plan_are_not_reused(tiny_build, tmp_path):
+    work = _copy_work(tiny_build, tmp_path)
+    for name in ("plan.json", "plan.npz"):
+        (work / name).unlink()
+    with pytest.raises(ValueError, match="14 drapes without a plan"):
+        build_database(BuildConfig(**TINY), tmp_path / "db.h5", workers=0, progress=False)
+
+
+def test_template_hash_follows_the_template(body):
+    from dataclasses import replace
+
+    from agentdress_ros.build.builder import template_hash
+    from agentdress_ros.garment import make_garment
+    from agentdress_ros.garment.binding import SurfaceBinding
+
+    garment = make_garment("tshirt", body, 400)
+    assert template_hash(make_garment("tshirt", body, 400)) == template_hash(garment)
+    offset = garment.binding.offset.copy()
+    offset[7] += 1e-6
+    moved = replace(garment, binding=SurfaceBinding(garment.binding.triangles, garment.binding.barycentric, offset))
+    pinned = replace(garment, pinned=np.arange(3))
+    hashes = {template_hash(g) for g in (garment, moved, pinned, make_garment("tshirt", body, 1500),
+                                         make_garment("trousers", body, 400))}
+    assert len(hashes) == 5
+
+
+def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(tiny_build, tmp_path, caplog):
     """A build continued elsewhere from a pack of its drapes fits the same database; a partial database keeps only
-    the anchors whose drapes are all there."""
+    the anchors whose drapes are all there. A pack from before drape environments were recorded (like the shipped
+    ones) is still accepted, with a warning that says so."""
     from agentdress_ros.build.jobs import DrapeStore
 
     reference_path, _ = tiny_build
     work = reference_path.parent / (reference_path.name + ".work")
     config = BuildConfig(**TINY)
     pack = tmp_path / "drapes.npz"
-    assert DrapeStore(work / "drapes").pack(pack, config.plan_key()) == 2 * 5 + 1 + 1 + 2
+    assert DrapeStore(work / "drapes").pack(pack, config.plan_key()) == 2 * 5 + 1 + 1 + 2  # no environment
 
     out = tmp_path / "continued.h5"
     build_database(config, out, workers=0, progress=False, command="test tiny build", seed_drapes=pack,
                    partial=True)  # partial: nothing may be draped, everything comes from the pack
+    assert "records no drape environment" in caplog.text
     continued, reference = read_database(out), read_database(reference_path)
     for field in ("anchor_poses", "pca_mean", "pca_components", "ridge", "example_drapes", "sequence_drapes"):
         np.testing.assert_array_equal(getattr(continued, field), getattr(reference, field), err_msg=field)
@@ -148,6 +242,28 @@ def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(ti
     assert partial.example_drapes.shape[0] == reference.example_drapes.shape[0]  # beta0 drapes all still there
 
 
+def test_pack_from_another_drape_environment_is_refused(tmp_path):
+    """A pack records the drape environment; one made under another (here: warp) is refused, naming the change."""
+    from agentdress_ros.build.builder import DRAPE_PACKAGES
+    from agentdress_ros.build.jobs import DrapeStore
+
+    source = DrapeStore(tmp_path / "source")
+    for k in range(3):
+        source.save({"key": f"anchor_0000_{k:02d}", "vertices": np.full((4, 3), k, dtype=np.float64),
+                     "stats": {"frames": 10 + k}})
+    environment = {**{name: "1.0" for name in DRAPE_PACKAGES}, "garment_template": "ab" * 32}
+    plan_key = BuildConfig(**TINY).plan_key()
+    pack = tmp_path / "drapes.npz"
+    source.pack(pack, plan_key, {**environment, "warp": "0.1"})
+    with pytest.raises(ValueError, match='another drape environment, so they are not reused .*warp: "0.1" -> "1.0"'):
+        DrapeStore(tmp_path / "store").unpack(pack, plan_key, environment)
+    assert not list((tmp_path / "store").glob("*.npz"))
+    source.pack(pack, plan_key, environment)
+    store = DrapeStore(tmp_path / "store")
+    assert store.unpack(pack, plan_key, environment) == 3
+    assert store.stats("anchor_0000_02") == {"frames": 12} and store.load("anchor_0000_01").max() == 1.0
+
+
 def test_engine_reproduces_training_drapes_through_the_residual_basis(tiny_build, body):
     """The engine adds the garment fitted to beta and skinned back to the residual shape model: at an anchor pose
     and a training shape it returns that drape up to the shape model's own fit error."""
@@ -157,7 +273,8 @@ def test_engine_reproduces_training_drapes_through_the_residual_basis(tiny_build
     out, report = tiny_build
     db = read_database(out)
     store = DrapeStore(out.parent / (out.name + ".work") / "drapes")
-    engine = Engine(db, body, EngineConfig(pose_model="examples", penetration=False, decay=False, neighbors=1))
+    engine = Engine(db, body, EngineConfig(pose_model="examples", penetration=False, decay=False, neighbors=1,
+                                          pose_neighbors=1))
     errors = []
     for k, beta in enumerate(db.training_betas):
         engine.set_shape(beta)

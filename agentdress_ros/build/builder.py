@@ -1,12 +1,16 @@
 """`agentdress build`: pose set -> sensitivities -> anchors -> drapes -> shape and pose models -> HDF5 database.
 
-Everything before the drapes is cheap and deterministic; it is computed once and kept in `<out>.work/plan.npz`
-with the build parameters, so a rerun (after a kill) reuses it and only drapes what is missing. Drapes run in
-parallel processes through Dask (a LocalCluster by default, or an existing scheduler), each written atomically as
+Everything before the drapes is cheap and deterministic; it is computed once and kept in `<out>.work/` as
+`plan.npz` (arrays, read without pickle) and `plan.json` (its key and report), so a rerun (after a kill) reuses it and
+only drapes what is missing. The key holds everything a drape depends on: the build parameters and the drape
+environment (the versions of anny, newton and warp, and a hash of the garment template with its generator
+settings); a rerun under another key is refused and says what changed, so stale drapes are never reused. Drapes run
+in parallel processes through Dask (a LocalCluster by default, or an existing scheduler), each written atomically as
 soon as it arrives. The database file is written last, atomically: a partial build never leaves a partial file.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import platform
@@ -23,8 +27,9 @@ from ..body.assets import PHENOTYPE_NAMES
 from ..engine.database import Database, write_database
 from ..garment import REGION_NAMES, make_garment
 from ..garment.binding import SurfaceBinding
+from ..garment.templates import EASE, SURFACE
 from .anchors import canonical_poses, coverage, farthest_poses, uniform_anchors, weighted_kmeans_anchors
-from .jobs import DrapeJob, DrapeStore, posed_scene, run_drape_job
+from .jobs import DrapeJob, DrapeStore, key_changes, posed_scene, run_drape_job
 from .sensitivity import joint_weights, region_dof_influence, vertex_sensitivity
 from .shape_model import fit_shape_model
 from .shapes import shape_range, shape_scale, training_shapes
@@ -62,7 +67,52 @@ FIT_ONLY = ("components",)  # changes only the models fitted to the drapes: a re
 
 
 def _plan_key(fields: dict) -> str:
+    """The build parameters' part of the key (also what a drape pack's `__plan_key__` holds)."""
     return json.dumps({k: v for k, v in fields.items() if k not in FIT_ONLY}, sort_keys=True)
+
+
+#: Distributions whose versions change a drape: the body model (shapes, rig, skin weights) and the simulator.
+DRAPE_PACKAGES = {"anny": "anny", "newton": "newton", "warp": "warp-lang"}
+
+
+def _version(distribution: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(distribution)
+    except PackageNotFoundError:
+        return "not installed"
+
+
+def template_hash(garment) -> str:
+    """sha256 of a garment template (topology, binding, skin weights, regions, pinned vertices) and the settings
+    its generator was run with (name, vertex count, ease, surface). Floats are rounded to 1e-9 so that the same
+    template built on another machine hashes the same."""
+    settings = {"name": garment.name, "vertices": int(garment.n_vertices), "surface": garment.surface,
+                "ease": EASE.get(garment.name), "tights": SURFACE, "binding": type(garment.binding).__name__}
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode())
+    binding = sorted(vars(garment.binding).items())
+    for name, value in [("faces", garment.faces), ("skin_indices", garment.skin_indices),
+                        ("skin_weights", garment.skin_weights), ("regions", garment.regions),
+                        ("pinned", garment.pinned)] + [(f"binding.{k}", v) for k, v in binding]:
+        array = np.asarray(value)
+        array = (np.round(array.astype(np.float64), 9) + 0.0) if array.dtype.kind == "f" else array.astype(np.int64)
+        digest.update(f"{name}{array.shape}".encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
+
+
+def drape_environment(garment) -> dict:
+    """What changes a drape besides the build parameters: package versions and the garment template's hash."""
+    environment = {name: _version(dist) for name, dist in DRAPE_PACKAGES.items()}
+    environment["garment_template"] = template_hash(garment)
+    return environment
+
+
+def build_key(config: BuildConfig, environment: dict) -> dict:
+    """The full key of a build's plan and drapes (JSON-compatible)."""
+    return json.loads(json.dumps({"parameters": json.loads(config.plan_key()), "environment": environment},
+                                 sort_keys=True))
 
 
 def _motion_poses(config: BuildConfig, body: AnnyBody, shape) -> np.ndarray:
@@ -91,10 +141,10 @@ def _sequence_poses(config: BuildConfig, shape) -> np.ndarray:
     return canonical_poses(motion.rotvecs[: config.sequence_frames])
 
 
-def make_plan(config: BuildConfig, body: AnnyBody) -> dict:
-    """All deterministic inputs of the drapes and models (no simulation): arrays and a report."""
+def make_plan(config: BuildConfig, body: AnnyBody, garment=None) -> dict:
+    """All deterministic inputs of the drapes and models (no simulation): arrays, the garment and a report."""
     rng = np.random.default_rng(config.seed)
-    garment = make_garment(config.garment, body, config.garment_vertices)
+    garment = garment if garment is not None else make_garment(config.garment, body, config.garment_vertices)
     beta0 = np.asarray(REFERENCE_SHAPE, dtype=np.float64)
     shapes = training_shapes(config.shapes, beta0)
     scale = shape_scale()
@@ -156,26 +206,55 @@ def _jobs(config: BuildConfig, plan: dict) -> list:
     return jobs
 
 
-def _load_or_make_plan(config: BuildConfig, body: AnnyBody, work: Path) -> dict:
-    """The plan of this build: computed once, then reloaded (a build resumed with other parameters is refused)."""
-    import pickle
+PLAN_ARRAYS = ("beta0", "shapes", "scale", "sensitivity", "dof_weights", "region_dof", "anchors", "examples",
+               "sequence", "holdout_beta")
 
-    path = work / "plan.pkl"
-    if path.is_file():
-        with open(path, "rb") as handle:
-            stored = pickle.load(handle)
-        if _plan_key(json.loads(stored["config"])) != config.plan_key():
+
+def _load_or_make_plan(config: BuildConfig, body: AnnyBody, work: Path) -> tuple:
+    """(plan, key) of this build: the plan is computed once and stored as plan.npz + plan.json, then reloaded.
+
+    A work folder whose plan has another key is refused, naming what changed (parameters, package versions, the
+    garment template), as is one holding drapes without a readable plan (an older pickled plan.pkl, which is never
+    loaded: unpickling runs code): its drapes cannot be told apart from stale ones.
+    """
+    garment = make_garment(config.garment, body, config.garment_vertices)
+    key = build_key(config, drape_environment(garment))
+    meta, arrays = work / "plan.json", work / "plan.npz"
+    drapes = sorted((work / "drapes").glob("*.npz"))
+    if meta.is_file():
+        try:
+            stored = json.loads(meta.read_text())
+            with np.load(arrays, allow_pickle=False) as data:
+                plan = {name: data[name] for name in PLAN_ARRAYS}
+            stored_key, report = stored["key"], stored["report"]
+            if not isinstance(stored_key, dict):
+                raise TypeError(f"its key is {type(stored_key).__name__}, not an object")
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise ValueError(f"{work}: unreadable plan ({error}); delete the folder or use another --out") from None
+        if stored_key != key:
+            what = ("belongs to a build with other parameters" if stored_key.get("parameters") != key["parameters"]
+                    else "was made under another drape key")
+            changes = "\n    ".join(key_changes(stored_key, key))
             raise ValueError(
-                f"{work}: this work folder belongs to a build with other parameters; use another --out or "
-                f"delete the folder.\n  stored:    {stored['config']}\n  requested: {config.plan_key()}"
-            )
-        return stored["plan"]
-    plan = make_plan(config, body)
-    partial = path.with_suffix(".partial")
-    with open(partial, "wb") as handle:
-        pickle.dump({"config": config.plan_key(), "plan": plan}, handle)
-    partial.replace(path)
-    return plan
+                f"{work}: this work folder {what}; its {len(drapes)} finished drapes are not reused. Use another "
+                f"--out or delete the folder.\n  changed (stored -> requested):\n    {changes}")
+        return {**plan, "garment": garment, "report": report}, key
+    if (work / "plan.pkl").exists():
+        raise ValueError(f"{work}: holds a pickled plan (plan.pkl) of an older agentdress, which is not loaded "
+                         f"(unpickling can run code), and {len(drapes)} drapes under an unknown key. Delete the folder "
+                         "or use another --out; drapes packed with --pack-drapes can seed the new build.")
+    if drapes:
+        raise ValueError(f"{work}: {len(drapes)} drapes without a plan (plan.json): their key is unknown, so they "
+                         "are not reused. Delete the folder or use another --out.")
+    plan = make_plan(config, body, garment)
+    work.mkdir(parents=True, exist_ok=True)
+    partial = work / "plan.partial.npz"
+    np.savez(partial, **{name: np.asarray(plan[name]) for name in PLAN_ARRAYS})
+    partial.replace(arrays)
+    partial = work / "plan.json.partial"
+    partial.write_text(json.dumps({"key": key, "report": plan["report"]}, indent=1, sort_keys=True))
+    partial.replace(meta)  # written last: its presence marks a complete plan
+    return plan, key
 
 
 def run_jobs(jobs, store: DrapeStore, workers: int = 2, scheduler: str | None = None, progress: bool = True):
@@ -233,11 +312,12 @@ def run_jobs(jobs, store: DrapeStore, workers: int = 2, scheduler: str | None = 
 
 
 def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyBody, command: str,
-                 partial: bool = False) -> tuple:
+                 partial: bool = False, environment: dict | None = None) -> tuple:
     """Shape models, pose-model data and provenance from the finished drapes: (Database, report).
 
     partial: use only the anchors whose drapes are all finished (and the examples and the leading sequence frames
     that are), for a usable database from a build that is still running; a complete build is the same either way.
+    environment: the drape environment of the build's key (drape_environment), recorded in the provenance.
     """
     garment = plan["garment"]
     n_anchors, n_shapes = len(plan["anchors"]), len(plan["shapes"])
@@ -340,6 +420,7 @@ def fit_database(config: BuildConfig, plan: dict, store: DrapeStore, body: AnnyB
         build_command=command,
         provenance={
             "config": asdict(config),
+            "drape_environment": environment,
             "report": report,
             "python": sys.version.split()[0],
             "machine": platform.machine(),
@@ -362,15 +443,15 @@ def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | 
     work = out.with_name(out.name + ".work")
     work.mkdir(parents=True, exist_ok=True)
     body = AnnyBody()
-    plan = _load_or_make_plan(config, body, work)
+    plan, key = _load_or_make_plan(config, body, work)
     store = DrapeStore(work / "drapes")
     if seed_drapes:
-        store.unpack(seed_drapes, config.plan_key())
+        store.unpack(seed_drapes, config.plan_key(), key["environment"])
     if not partial:
         run_jobs(_jobs(config, plan), store, workers, scheduler, progress)
     command = command or "agentdress " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    db, report = fit_database(config, plan, store, body, command, partial=partial)
+    db, report = fit_database(config, plan, store, body, command, partial=partial, environment=key["environment"])
     write_database(out, db)
     if pack_drapes:
-        store.pack(pack_drapes, config.plan_key())
+        store.pack(pack_drapes, config.plan_key(), key["environment"])
     return report

@@ -5,6 +5,8 @@ Workers (local processes or a Dask cluster) run `run_drape_job`; the builder wri
 """
 from __future__ import annotations
 
+import json
+import logging
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -14,6 +16,19 @@ import numpy as np
 # Per-process caches: a worker builds the body and each garment once, whatever number of jobs it runs.
 _BODY = None
 _GARMENTS: dict = {}
+LOG = logging.getLogger(__name__)
+
+
+def key_changes(stored: dict, wanted: dict, prefix: str = "") -> list:
+    """['name: stored -> wanted', ...] for every entry in which two (nested, JSON) keys differ."""
+    changes = []
+    for name in sorted(set(stored) | set(wanted)):
+        old, new = stored.get(name, "absent"), wanted.get(name, "absent")
+        if isinstance(old, dict) and isinstance(new, dict):
+            changes += key_changes(old, new, f"{prefix}{name}.")
+        elif old != new:
+            changes.append(f"{prefix}{name}: {json.dumps(old)} -> {json.dumps(new)}")
+    return changes
 
 
 @dataclass(frozen=True)
@@ -89,8 +104,20 @@ def run_drape_job(job: DrapeJob, warm_drape: np.ndarray | None = None) -> dict:
             raise ValueError(f"job {job.key} starts from drape {job.warm_key}, which was not given")
         source_skinned = posed_scene(body, garment, job.warm_beta, job.warm_pose)[1]
         warm = transferred_warm_start(warm, warm_drape, source_skinned)
-    result = drape(warm, garment.faces, body_vertices, body_faces, DrapeSettings(**job.settings), rest_vertices=rest,
-                   pinned=garment.pinned)
+    settings = DrapeSettings(**job.settings)
+    path = {}
+    if settings.ramp_frames > 0 and not job.warm_key:
+        # animated collider: the garment starts at rest on the body at rest, where it is clean, and the body
+        # carries it into the pose (a skinned start would already sit folded into the armpit)
+        from ..sim.posing import posed_surfaces, ramp_poses
+
+        ramp = ramp_poses(job.pose, settings.ramp_frames)
+        bodies, garments = posed_surfaces(body, garment, body.shape(job.beta), ramp)
+        pinned_path = np.concatenate([garments[:, garment.pinned], warm[None, garment.pinned]])
+        path = {"body_path": bodies, "pinned_path": pinned_path}
+        warm = rest
+    result = drape(warm, garment.faces, body_vertices, body_faces, settings, rest_vertices=rest,
+                   pinned=garment.pinned, **path)
     stats = {k: v for k, v in asdict(result).items() if k != "vertices" and np.isscalar(v)}
     return {"key": job.key, "vertices": np.asarray(result.vertices, dtype=np.float64), "stats": stats}
 
@@ -126,10 +153,13 @@ class DrapeStore:
         with np.load(self.path(key)) as data:
             return {k[5:]: data[k].item() for k in data.files if k.startswith("stat_")}
 
-    def pack(self, path, plan_key: str) -> int:
+    def pack(self, path, plan_key: str, environment: dict | None = None) -> int:
         """Write every finished drape (vertices and stats) into one compressed .npz, tagged with the build's plan
-        key; returns the count. A build is resumable across machines from this one file (`unpack`)."""
+        key and drape environment (versions, garment template hash); returns the count. A build is resumable
+        across machines from this one file (`unpack`)."""
         arrays = {"__plan_key__": np.array(plan_key)}
+        if environment is not None:
+            arrays["__environment__"] = np.array(json.dumps(environment, sort_keys=True))
         files = sorted(self.folder.glob("*.npz"))
         for file in files:
             with np.load(file) as data:
@@ -142,11 +172,18 @@ class DrapeStore:
         os.replace(partial, path)
         return len(files)
 
-    def unpack(self, path, plan_key: str) -> int:
-        """Add the drapes of a pack that this store lacks; refuses a pack of another build. Returns the count."""
-        with np.load(path) as data:
+    def unpack(self, path, plan_key: str, environment: dict | None = None) -> int:
+        """Add the drapes of a pack that this store lacks; returns the count.
+
+        Refuses a pack of another build (plan key) or, given `environment`, one whose drapes were made under
+        another drape environment, naming what differs. A pack from before environments were recorded is taken
+        as made under `environment`, with a warning that says so (the shipped packs are such packs).
+        """
+        with np.load(path, allow_pickle=False) as data:
             if str(data["__plan_key__"]) != plan_key:
                 raise ValueError(f"{path}: these drapes belong to a build with other parameters")
+            if environment is not None:
+                self._check_environment(path, data, environment)
             names: dict = {}
             for name in data.files:
                 key, _, field = name.partition("/")
@@ -160,3 +197,15 @@ class DrapeStore:
                 self.save({"key": key, "vertices": data[f"{key}/vertices"], "stats": stats})
                 added += 1
         return added
+
+    @staticmethod
+    def _check_environment(path, data, environment: dict):
+        wanted = json.loads(json.dumps(environment, sort_keys=True))
+        if "__environment__" not in data.files:
+            LOG.warning("%s: this pack records no drape environment (packed before it was part of the key); its "
+                        "drapes are taken as made under this build's: %s", path, json.dumps(wanted, sort_keys=True))
+            return
+        changes = key_changes(json.loads(str(data["__environment__"])), wanted)
+        if changes:
+            raise ValueError(f"{path}: these drapes were made under another drape environment, so they are not "
+                             f"reused (pack -> this build): {'; '.join(changes)}")
