@@ -24,8 +24,9 @@ def quick_eval(tmp_path_factory):
         pytest.skip(f"{DATABASE} is not built")
     clip = shared_path("mocap", "cmu", f"{HELD_OUT_CLIPS[0]}.bvh")
     folder = tmp_path_factory.mktemp("eval")
+    # the v2 set in small: animated-collider drapes (a short ramp) and a short dynamic ground-truth sequence
     report = evaluate(DATABASE, folder / "report", folder / "cache", clips=[clip], quick=True, workers=0,
-                      progress=False)
+                      progress=False, test_set="v2")
     return folder, report
 
 
@@ -56,6 +57,17 @@ def test_quick_eval_measures_every_row_with_finite_numbers(quick_eval):
     assert report["lowest_mean_error"] in report["indistinguishable_from_lowest"]
 
 
+def test_quick_eval_measures_every_row_along_the_dynamic_ground_truth(quick_eval):
+    folder, report = quick_eval
+    (entry,) = report["temporal"]
+    assert entry["frames"] == 4 and entry["truth_jitter_mm"] > 0.0
+    assert [r["name"] for r in entry["rows"]] == [r["name"] for r in report["rows"]]
+    for r in entry["rows"]:
+        assert all(math.isfinite(r[k]) and r[k] >= 0.0 for k in ("error_mean_cm", "error_max_frame_cm", "jitter_mm"))
+        assert r["error_mean_cm"] < 20.0, r  # the garment follows the moving body
+    assert "Along the dynamic ground truth" in (folder / "report" / "trade.md").read_text()
+
+
 def test_quick_eval_writes_table_json_and_plots(quick_eval):
     folder, report = quick_eval
     out = folder / "report"
@@ -83,7 +95,7 @@ def test_ground_truth_is_cached_and_reused(quick_eval, tmp_path):
     assert len(drapes) == report["test_set"]["drapes"] == 2
     stamps = [p.stat().st_mtime_ns for p in drapes]
     again = evaluate(DATABASE, tmp_path / "again", folder / "cache", clips=[clip], quick=True, workers=0,
-                     progress=False)
+                     progress=False, test_set="v2")
     assert [p.stat().st_mtime_ns for p in drapes] == stamps  # no drape simulated twice
     first = {r["name"]: r["error_mean_cm"] for r in report["rows"]}
     for r in again["rows"]:

@@ -184,6 +184,34 @@ def speed_and_jitter(models, test, beta, repeats: int = 3) -> list[dict]:
     return [{"ms_per_frame": float(medians[:, m].min() * 1e3), "jitter_mm": jitter[m]} for m in range(len(models))]
 
 
+def _jitter_mm(frames: np.ndarray) -> float:
+    """Mean vertex acceleration (mm / frame^2) of frames (T, V, 3)."""
+    if len(frames) < 3:
+        return 0.0
+    return float(np.linalg.norm(frames[2:] - 2 * frames[1:-1] + frames[:-2], axis=2).mean() * 1e3)
+
+
+def temporal_report(models, names, sequences) -> list[dict]:
+    """Along each dynamic ground-truth sequence (HeldOutSet.dynamic): every model's mean error per frame (cm) and
+    its jitter against the ground truth's own (mm / frame^2), decay history kept from frame to frame."""
+    report = []
+    for sequence in sequences:
+        truth = np.asarray(sequence["positions"], dtype=np.float64)
+        entry = {"sequence": sequence["label"], "frames": int(len(truth)), "truth_jitter_mm": _jitter_mm(truth),
+                 "rows": []}
+        for name, model in zip(names, models):
+            model.set_shape(sequence["beta"])
+            _reset(model)
+            out = np.stack([np.array(model.synthesize(pose.astype(np.float64), root.astype(np.float64)),
+                                     dtype=np.float64)
+                            for pose, root in zip(sequence["rotvecs"], sequence["root_translation"])])
+            error = np.linalg.norm(out - truth, axis=2).mean(axis=1) * 100.0
+            entry["rows"].append({"name": name, "error_mean_cm": float(error.mean()),
+                                  "error_max_frame_cm": float(error.max()), "jitter_mm": _jitter_mm(out)})
+        report.append(entry)
+    return report
+
+
 def stability_report(db, body, garment) -> list[dict]:
     """The engine's extreme inputs through the full pipeline (default config): for each case the largest distance
     (cm) from the skinned template at the same pose and (effective) shape, non-finite outputs and rejected frames."""
@@ -242,14 +270,14 @@ def stability_report(db, body, garment) -> list[dict]:
 
 
 def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: int = 2, progress: bool = True,
-             drape: dict | None = None, pack=None) -> dict:
+             drape: dict | None = None, pack=None, test_set: str = "v1") -> dict:
     """Build (or reuse) the held-out set, measure every row, write report.json, trade.md and the plots.
 
     pack: file of the held-out ground-truth drapes, read when present and rewritten (see make_held_out_set)."""
     from ..body import AnnyBody
     from ..engine import read_database
     from ..garment import make_garment
-    from .testset import HeldOutConfig, default_clip_paths, make_held_out_set
+    from .testset import HeldOutConfig, default_clip_paths, held_out_v2, make_held_out_set
 
     db = read_database(db_path)
     body = AnnyBody()
@@ -258,6 +286,12 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     if quick:
         config = HeldOutConfig(clips=clips[:1], poses_per_clip=1, shapes_inside=1, shapes_outside=1,
                                sequence_frames=30, drape={"max_frames": 60, **(drape or {})})
+        if test_set == "v2":  # the same, with a short ramp and a short dynamic sequence
+            config.drape["ramp_frames"] = 8
+            config.dynamic_clips, config.dynamic_frames, config.dynamic_shapes = clips[:1], 4, 1
+    elif test_set == "v2":  # animated-collider drapes of all 10 test clips, and dynamic sequences
+        config = held_out_v2()
+        config.drape.update(drape or {})
     else:
         config = HeldOutConfig(clips=clips, drape=drape or {})
     start = time.perf_counter()
@@ -280,6 +314,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         for row, timing in zip(rows, speed_and_jitter(models, test, test.betas[0], repeats=repeats)):
             row.results.update(timing)
         stability = stability_report(db, body, garment)
+        temporal = temporal_report(models, [r.name for r in rows], test.dynamic)
 
     baseline = rows[0].results
     default = next(i for i, r in enumerate(rows) if r.group == "default")
@@ -321,6 +356,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         "indistinguishable_from_baseline": [r.name for r in rows[1:]
                                             if r.results["vs_baseline"] == "indistinguishable"],
         "stability": stability,
+        "temporal": temporal,
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -344,6 +380,15 @@ def trade_markdown(report: dict) -> str:
     for s in report["stability"]:
         lines.append(f"| {s['case']} | {s['max_deviation_from_skinned_cm']:.2f} | {s['non_finite']} | "
                      f"{s['rejected_frames']} |")
+    for entry in report.get("temporal", []):
+        lines += ["", f"Along the dynamic ground truth {entry['sequence']} ({entry['frames']} frames at 30 fps; the "
+                  f"ground truth's own jitter {entry['truth_jitter_mm']:.2f} mm/frame^2):", "",
+                  "| configuration | mean error per frame (cm) | worst frame (cm) | jitter (mm/frame^2) | "
+                  "jitter / ground truth's |", "|---|---|---|---|---|"]
+        for r in entry["rows"]:
+            ratio = r["jitter_mm"] / max(entry["truth_jitter_mm"], 1e-12)
+            lines.append(f"| {r['name']} | {r['error_mean_cm']:.2f} | {r['error_max_frame_cm']:.2f} | "
+                         f"{r['jitter_mm']:.2f} | {ratio:.2f} |")
     truth = report["test_set"]
     lines += ["", f"Ground truth: {truth['drapes']} newton drapes of {len(truth['poses'])} held-out poses x "
               f"{len(truth['betas'])} shapes; {100 * truth['ground_truth_inside_fraction']:.2f} % of their vertices "
@@ -461,13 +506,16 @@ def main(argv=None) -> int:
     parser.add_argument("--drape", default="", help="JSON DrapeSettings overrides for the ground truth")
     parser.add_argument("--ground-truth", default=None, help="pack of the held-out drapes, read when present and "
                         "rewritten (default: <out>/ground_truth_drapes.npz; 'none' for no pack)")
+    parser.add_argument("--test-set", choices=["v1", "v2"], default="v1", help="v1: 10 poses of 5 test clips x 3 "
+                        "shapes, static collider; v2: 40 poses of all 10 test clips x 3 shapes, animated collider, "
+                        "and dynamic sequences along 02_08 and 05_12 (see evaluate.testset.held_out_v2)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     pack = None if args.ground_truth == "none" else (args.ground_truth or Path(args.out) / "ground_truth_drapes.npz")
     cache = args.cache or Path("out/eval-cache") / Path(args.database).stem
     report = evaluate(args.database, args.out, cache, clips=args.clips, quick=args.quick,
                       workers=args.workers, progress=not args.quiet,
-                      drape=json.loads(args.drape) if args.drape else None, pack=pack)
+                      drape=json.loads(args.drape) if args.drape else None, pack=pack, test_set=args.test_set)
     summary = {r["name"]: {**{k: round(r[k], 4) for k in ("error_mean_cm", "error_p95_cm", "ms_per_frame")},
                            "error_mean_ci_cm": [round(x, 4) for x in r["error_mean_ci_cm"]]}
                for r in report["rows"]}

@@ -25,6 +25,18 @@ def default_clip_paths(root: Path | None = None) -> list[Path]:
     return [root / f"{name}.bvh" for name in HELD_OUT_CLIPS]
 
 
+def held_out_v2(root: Path | None = None) -> "HeldOutConfig":
+    """The ground truth v2 test set: 4 poses from each of the 10 test clips of ../shared/mocap/README.md x 3 shapes
+    (2 inside the training range, 1 just outside), draped with the animated collider (the body carried from rest
+    into each pose), and dynamic sequences of 300 frames (30 fps) along two test clips, 02_08 (swordplay) and 05_12
+    (dance, arms high), at beta0 and at the first inside shape."""
+    from ..build.sequences import TEST_CLIPS
+
+    root = Path(root) if root is not None else default_clip_paths()[0].parent
+    return HeldOutConfig(clips=[root / f"{name}.bvh" for name in TEST_CLIPS], poses_per_clip=4,
+                         drape={"ramp_frames": 30}, dynamic_clips=[root / "02_08.bvh", root / "05_12.bvh"])
+
+
 @dataclass
 class HeldOutConfig:
     clips: list = field(default_factory=list)  # .bvh paths; the poses and the timing/jitter sequence come from them
@@ -36,6 +48,9 @@ class HeldOutConfig:
     drape: dict = field(default_factory=dict)  # DrapeSettings overrides
     warm_drape: dict = field(default_factory=lambda: {"velocity_retention": 0.75})
     seed: int = 0
+    dynamic_clips: list = field(default_factory=list)  # .bvh paths simulated as whole sequences (sim.sequence)
+    dynamic_frames: int = 300  # frames (30 fps) of each dynamic sequence
+    dynamic_shapes: int = 2  # beta0, then the first shapes of the static set
 
 
 @dataclass
@@ -48,6 +63,8 @@ class HeldOutSet:
     sequence: np.ndarray  # (T, B, 3) held-out motion (root rotation kept) for timing and jitter
     sequence_root: np.ndarray  # (T, 3)
     drape_stats: list  # per drape: frames, converged, seconds, inside_count, ...
+    dynamic: list = field(default_factory=list)  # per dynamic sequence: {"label", "beta", "positions" (T, V, 3),
+    # "rotvecs" (T, B, 3), "root_translation" (T, 3)}: newton ground truth along a held-out clip, root motion kept
 
 
 def _trained_phenotypes(db) -> np.ndarray:
@@ -135,7 +152,10 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
 
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
-    key = json.dumps({"garment": db.garment, "vertices": db.n_vertices, **asdict(config),
+    fields = asdict(config)
+    if not config.dynamic_clips:  # a static set keeps the key it had before dynamic sequences existed
+        fields = {k: v for k, v in fields.items() if not k.startswith("dynamic_")}
+    key = json.dumps({"garment": db.garment, "vertices": db.n_vertices, **fields,
                       "clips": [Path(c).stem for c in config.clips], "betas": np.round(betas, 9).tolist()},
                      sort_keys=True, default=str)
     stamp = cache / "testset.json"
@@ -162,4 +182,32 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
     drapes = np.stack([np.stack([store.load(f"test_{p:04d}_{k:02d}") for k in range(len(betas))])
                        for p in range(len(poses))])
     stats = [store.stats(job.key) for job in jobs]
-    return HeldOutSet(poses, labels, betas, shape_labels, drapes, sequence, sequence_root, stats)
+    dynamic = held_out_sequences(db, body, garment, config, betas, cache / "dynamic", progress=progress)
+    return HeldOutSet(poses, labels, betas, shape_labels, drapes, sequence, sequence_root, stats, dynamic)
+
+
+def held_out_sequences(db, body, garment, config: HeldOutConfig, betas, folder, progress: bool = True) -> list:
+    """Dynamic ground truth along config.dynamic_clips (simulated once into `folder`, resumable by chunks) at beta0
+    and the first static shapes; see HeldOutSet.dynamic."""
+    from ..motion.retarget import load_cmu_motion
+    from ..motion.skeleton import Motion
+    from ..sim.sequence import SequenceSettings, load_sequence, resample, simulate_sequence
+    from ..sim.settings import DrapeSettings
+
+    settings = SequenceSettings(drape=DrapeSettings(**{k: v for k, v in config.drape.items() if k != "ramp_frames"}))
+    shapes = [np.asarray(db.beta0, dtype=np.float64)] + [b for b in betas[: max(0, config.dynamic_shapes - 1)]]
+    sequences = []
+    for clip in config.dynamic_clips:
+        for k, beta in enumerate(shapes):
+            shape = body.shape(beta)
+            motion = load_cmu_motion(clip, shape.heads, shape.tails)
+            rotvecs, roots = resample(motion, settings.fps)
+            motion = Motion(rotvecs[: config.dynamic_frames], roots[: config.dynamic_frames], settings.fps,
+                            name=Path(clip).stem)
+            path = Path(folder) / f"{Path(clip).stem}_{k:02d}"
+            simulate_sequence(motion, garment, beta, path, settings, body=body, progress=progress)
+            data = load_sequence(path)
+            sequences.append({"label": f"{Path(clip).stem} {'beta0' if k == 0 else f'shape {k}'}",
+                              "beta": beta, "positions": data["positions"], "rotvecs": data["rotvecs"],
+                              "root_translation": data["root_translation"]})
+    return sequences
