@@ -122,6 +122,14 @@ def test_scheduler_skips_far_agents_on_alternate_ticks_when_lowering_is_not_enou
     assert all(d.degraded for d in first if d.level is None)
 
 
+def test_scheduler_lets_no_agent_wait_longer_than_max_wait():
+    candidates = _candidates([1.0, 20.0, 30.0], [0, 3, 3])
+    candidates[2].waited = 9
+    decisions = {d.key: d for d in schedule(candidates, budget_ms=1.0, max_wait=9)}
+    assert decisions["a1"].level is None  # no room: skipped
+    assert decisions["a2"].level == 3 and decisions["a2"].degraded is False  # waited long enough: dressed
+
+
 def test_scheduler_never_drops_near_agents_even_over_budget():
     decisions = schedule(_candidates([1.0, 1.5, 2.0], [0, 0, 0]), budget_ms=0.5)
     assert all(d.level == 0 and not d.degraded for d in decisions)
@@ -294,3 +302,19 @@ def test_agents_are_added_and_refitted_off_the_frame_path_and_removed(scene, wal
 def test_parse_tier_names_the_line():
     with pytest.raises(ValueError, match="'x 3'"):
         parse_tier("x 3")
+
+
+def test_agents_of_one_shape_share_its_state_until_one_changes(scene):
+    a, b = _add(scene, "a"), _add(scene, "b")
+    ta, tb = a.garments["tshirt"].base, b.garments["tshirt"].base
+    assert ta._state is tb._state  # fitted once for both
+    scene.request_shape("b", (0.3, 0.5, 0.5, 0.7, 0.5, 0.5))
+    deadline = time.monotonic() + 60.0
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert ta._state is not tb._state and np.allclose(ta.shape_report.effective, BETA0)
+    state = tb._state
+    scene.request_shape("b", (0.3, 0.5, 0.5, 0.7, 0.5, 0.5))  # the same shape again: nothing to do
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert tb._state is state

@@ -98,6 +98,45 @@ class AgentDressNode(Node):
         from ..body import AnnyBody
 
         self.body = body if body is not None else AnnyBody()
+        self.topology_qos = TOPOLOGY_QOS
+        self.crowd = None
+        if self.config["agents"]:
+            self._start_crowd()
+        else:
+            self._start_single()
+        self.status_pub = self.create_publisher(String, "~/status", 10)
+        self.marker_pub = None
+        self._marker_job, self._marker_event = None, threading.Event()
+        self._done_version, self._dirty, self._last_publish = -1, True, 0.0
+        self._last_compute = 0.0
+        self._timer_by_key = {}
+        self._set_timer("tick", self.config["rate_hz"], self._on_tick)
+        self._set_timer("status", self.config["status_rate_hz"], self._on_status)
+        self._set_timer("marker", self.config["marker_rate_hz"], self._on_marker)
+        self._start_marker_thread()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
+
+    def _start_crowd(self):
+        """Crowd mode: every agent of `agents` dressed by one scene (agentdress_ros.ros.crowd)."""
+        from .crowd import Crowd
+
+        start = time.perf_counter()
+        try:
+            self.crowd = Crowd(self, self.body)
+        except ParameterError as error:
+            raise ConfigError(str(error)) from None
+        self.get_logger().info(f"crowd ready in {time.perf_counter() - start:.2f} s: {len(self.crowd.entities)} "
+                               f"agents, garments shared: {len(self.crowd.scene.library)}")
+
+    def _qos(self, kind: str) -> QoSProfile:
+        """The QoS of a stream kind: joint_states, shape, points (parameters qos.<kind>.*), viewer (best effort)."""
+        if kind == "viewer":
+            return _qos("best_effort", 1)
+        return _qos(self.config[f"qos.{kind}.reliability"], self.config[f"qos.{kind}.depth"])
+
+    def _start_single(self):
+        """Today's single agent: joint_states and body_shape in, ~/<garment>/points and mesh out."""
         start = time.perf_counter()
         model_set = build_model_set(self._scene(), self.body)  # GarmentDatabaseError names the file: exit
         self._prepare(model_set, None)
@@ -120,18 +159,6 @@ class AgentDressNode(Node):
                                  self._guarded("joint_states", self._on_joint_state), joint_qos)
         self.create_subscription(Float32MultiArray, self.config["shape_topic"],
                                  self._guarded("body_shape", self._on_shape), shape_qos)
-        self.status_pub = self.create_publisher(String, "~/status", 10)
-        self.marker_pub = None
-        self._marker_job, self._marker_event = None, threading.Event()
-        self._done_version, self._dirty, self._last_publish = -1, True, 0.0
-        self._last_compute = 0.0
-        self._timer_by_key = {}
-        self._set_timer("tick", self.config["rate_hz"], self._on_tick)
-        self._set_timer("status", self.config["status_rate_hz"], self._on_status)
-        self._set_timer("marker", self.config["marker_rate_hz"], self._on_marker)
-        self._start_marker_thread()
-        self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.add_post_set_parameters_callback(self._after_set_parameters)
 
     # ---- configuration -------------------------------------------------------------------------------------------
     def _read_config(self) -> dict:
@@ -166,6 +193,9 @@ class AgentDressNode(Node):
                     raise ParameterError(f"{p.name} is read at startup only: restart the node to change it")
                 config[p.name] = validate(p.name, p.value)
             check_garment_config(config["garments"], config["garment_databases"], TEMPLATES)
+            if bool(config["agents"]) != bool(self.config["agents"]):
+                raise ParameterError("agents: switching between one agent (empty list) and a crowd needs a restart "
+                                     "of the node")
             if any(p.name in ("garments", "garment_databases") for p in parameters):
                 for g in config["garments"]:
                     path = config["garment_databases"].get(g)
@@ -198,6 +228,9 @@ class AgentDressNode(Node):
                 self._set_timer(key, self.config[name], callback)
         if "warn_throttle_s" in changed:
             self.throttle.period = self.config["warn_throttle_s"]
+        if self.crowd is not None:
+            self.crowd.apply_parameters(changed)
+            return
         if "stamp_jump_threshold_s" in changed:
             self.pose.stamp_jump_ns = self._stamp_jump_ns()
         if "frame_id" in changed:
@@ -395,6 +428,9 @@ class AgentDressNode(Node):
         now = time.monotonic()
         if from_timer:  # the tick-rate statistics describe the timer, not the arrivals
             self.stats.tick(now, 1.0 / self.config["rate_hz"])
+        if self.crowd is not None:
+            self._crowd_tick(now)
+            return
         self._take_worker_news()
         if self.pose.version == self._done_version and not self._dirty:
             keepalive = self.config["keepalive_hz"]
@@ -432,6 +468,22 @@ class AgentDressNode(Node):
         self._done_version, self._dirty, self._last_publish = self.pose.version, False, now
         self._last_compute = now
 
+    def _crowd_tick(self, now: float):
+        start = time.perf_counter()
+        report = self.crowd.tick()
+        if report.dressed:
+            self.stats.counts["computed_ticks"] += 1
+            self.stats.counts["published_frames"] += len(report.dressed)
+            self.stats.tick_ms.append(1e3 * (time.perf_counter() - start))
+            self._last_publish = now
+        else:
+            self.stats.counts["idle_ticks"] += 1
+            keepalive = self.config["keepalive_hz"]
+            if keepalive > 0 and now - self._last_publish >= 1.0 / keepalive:
+                self.crowd.keepalive()
+                self.stats.counts["keepalive_frames"] += 1
+                self._last_publish = now
+
     def _publish_frame(self, name: str, frame, stamp):
         """Pack `frame` into the garment's (reused) cloud and publish it. A cloud whose packing failed may be half
         written: it is dropped (never re-sent by the keep-alive) and a fresh one made next time."""
@@ -457,11 +509,10 @@ class AgentDressNode(Node):
     def status(self) -> dict:
         now = time.monotonic()
         counts = dict(self.stats.counts)
-        return {
+        status = {
             "node": self.get_fully_qualified_name(),
             "rate_hz": self.config["rate_hz"],
             "tick_rate_hz": round(self.stats.rate(now), 2),
-            "synthesis_ms": TickStats.percentiles(self.stats.synthesis_ms),
             "tick_ms": TickStats.percentiles(self.stats.tick_ms),
             "published_frames": counts.pop("published_frames", 0),
             "keepalive_frames": counts.pop("keepalive_frames", 0),
@@ -469,13 +520,19 @@ class AgentDressNode(Node):
             "rejected": dict(self.stats.rejected),
             "errors": dict(self.stats.errors),
             "counts": counts,
+            "pid": os.getpid(),
+        }
+        if self.crowd is not None:
+            return {**status, "crowd": self.crowd.status()}
+        return {
+            **status,
+            "synthesis_ms": TickStats.percentiles(self.stats.synthesis_ms),
             "unknown_joint_names": sorted(self.pose.unknown_names)[:50],
             "garments": {n: {"kind": m.kind, "vertices": m.n_vertices, "faces": len(m.faces),
                              "shape_limits": getattr(m, "shape_limits", None)}  # what the garment cannot follow
                          for n, m in self.models.items()},
             "shape": list(self.model_set.scene.beta),
             "model_generation": self.model_set.generation,
-            "pid": os.getpid(),
         }
 
     def _on_status(self):
@@ -486,7 +543,7 @@ class AgentDressNode(Node):
         self._marker_thread.start()
 
     def _on_marker(self):
-        if self.marker_pub is None:
+        if self.marker_pub is None or self.crowd is not None:  # crowd mode: clouds and meshes only
             return
         if not self._marker_thread.is_alive():  # it died of something the loop does not catch: start a new one
             self.stats.counts["marker_restarts"] += 1
@@ -520,7 +577,10 @@ class AgentDressNode(Node):
                     self.marker_pub.publish(marker)
 
     def destroy_node(self):
-        self.worker.stop()
+        if self.crowd is not None:
+            self.crowd.stop()
+        else:
+            self.worker.stop()
         return super().destroy_node()
 
 

@@ -8,12 +8,14 @@ frames when the level changes, so a tier change does not pop.
 """
 from __future__ import annotations
 
+import copy
 import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..body import REFERENCE_SHAPE
+from ..motion.skeleton import NUM_BONES
 
 __all__ = ["AgentGarment", "GarmentLibrary", "GarmentSpec"]
 
@@ -42,6 +44,7 @@ class GarmentLibrary:
             make_body = make_body or garment_models.make_body_model
         self._make, self._make_body = make_model, make_body
         self._models: dict = {}
+        self._shaped: dict = {}  # (spec, beta) -> a snapshot of a garment fitted to beta (shape state shareable)
         self._lock = threading.Lock()
 
     def get(self, spec: GarmentSpec):
@@ -62,6 +65,22 @@ class GarmentLibrary:
                 self._models[spec] = model
             return model
 
+    def fitted(self, spec: GarmentSpec, beta, garment: "AgentGarment") -> bool:
+        """Fit `garment` (an AgentGarment of `spec`) to beta, sharing the shape state of an earlier agent fitted to
+        the same beta (shape states are never changed in place: a later set_shape of either builds a new one).
+        Returns whether beta was clamped."""
+        key = (spec, tuple(float(b) for b in beta))
+        with self._lock:
+            source = self._shaped.get(key)
+        if source is not None and garment.follow(source):
+            return source.clamped
+        clamped = garment.set_shape(beta)
+        with self._lock:
+            self._shaped[key] = garment.snapshot()
+            while len(self._shaped) > 64:
+                self._shaped.pop(next(iter(self._shaped)))
+        return clamped
+
     def models(self) -> list:
         with self._lock:
             return list(self._models.values())
@@ -81,6 +100,7 @@ class AgentGarment:
         self.name, self.faces, self.kind = shared.name, shared.faces, shared.kind
         self.n_vertices = shared.n_vertices
         self.fade_frames = int(fade_frames)
+        self.clamped = False
         engine = getattr(shared, "engine", None)
         self._levels = []  # per tier: ("synthesis", engine) | ("skinned", engine) | ("model", model)
         if engine is not None:
@@ -111,12 +131,32 @@ class AgentGarment:
 
     def set_shape(self, beta) -> bool:
         if self._engines:
-            clamped = bool(self.base.set_shape(beta).clamped)
-            for engine in self._engines:
-                if engine is not self.base:
-                    engine.follow_shape(self.base)
-            return clamped
-        return bool(self.base.set_shape(beta))
+            self.clamped = bool(self.base.set_shape(beta).clamped)
+            self._follow_base()
+        else:
+            self.clamped = bool(self.base.set_shape(beta))
+        return self.clamped
+
+    def _follow_base(self):
+        for engine in self._engines:
+            if engine is not self.base:
+                engine.follow_shape(self.base)
+
+    def snapshot(self) -> "AgentGarment":
+        """A shallow copy holding the current shape state (a later set_shape of this garment does not change it)."""
+        twin = copy.copy(self)
+        twin.base = copy.copy(self.base)
+        return twin
+
+    def follow(self, source: "AgentGarment") -> bool:
+        """Take the shape state of `source` (another agent's garment on the same data, already fitted). Returns
+        False where it cannot (a skinned template: refit instead)."""
+        if not self._engines or not source._engines:
+            return False
+        self.base.follow_shape(source.base)
+        self._follow_base()
+        self.clamped = source.clamped
+        return True
 
     def _run(self, level: int, rotvecs, root) -> np.ndarray:
         kind, target = self._levels[level]
@@ -149,6 +189,15 @@ class AgentGarment:
         else:
             np.copyto(self._out, new, casting="unsafe")
         return self._out
+
+    def rest_frame(self) -> np.ndarray:
+        """(V, 3) float32 copy of the garment at the rest pose on the current shape (for the topology message);
+        leaves no decay history behind. Call before the agent goes live (it uses the frame buffers)."""
+        zeros, root = np.zeros((NUM_BONES, 3)), np.zeros(3)
+        frame = self.base.skin(zeros, root) if self._engines else self.base.synthesize(zeros, root)
+        frame = np.array(frame, dtype=np.float32)
+        self.reset()
+        return frame
 
     def reset(self) -> None:
         """Forget decay history (the agent's motion was interrupted: back into view, a cut)."""

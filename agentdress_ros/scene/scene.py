@@ -56,6 +56,7 @@ class SceneConfig:
     lod_enabled: bool = True  # False: every agent at the first tier, never culled
     budget_ms: float = 8.0  # <= 0: no budget
     protect_tiers: int = 1  # tiers below this index are never lowered or skipped by the budget
+    max_wait: int = 9  # an agent skipped this many ticks in a row is dressed (cheapest level): >= 9 Hz at 90 Hz
     fade_frames: int = 6
     cost_smoothing: float = 0.2  # weight of a new measurement in a level's cost estimate
 
@@ -99,7 +100,10 @@ class Agent:
         self.dirty = True  # dress on the next tick even without a new pose
         self.waited = 0  # ticks in a row skipped by the budget
         self.cost_ms: dict[int, float] = {}
+        self.frames = 0  # frames dressed
+        self.last_dressed = 0.0  # time.monotonic() of the last one
         self.shape_generation = 0
+        self.beta = tuple(float(b) for b in spec.beta)
 
     def centre(self) -> np.ndarray:
         root = self.pose.values[3 * NUM_BONES:]
@@ -116,9 +120,6 @@ class Agent:
             while time.perf_counter() < end:
                 pass
         return out
-
-    def set_shape(self, beta) -> bool:
-        return any([g.set_shape(beta) for g in self.garments.values()])
 
     def memory_bytes(self, shared=()) -> int:
         """Bytes of the numpy arrays reachable from this agent's garments that are not reachable from `shared`
@@ -197,7 +198,7 @@ class Scene:
     """Agents dressed on the caller's thread; agents built and shapes refitted on one worker thread."""
 
     def __init__(self, body, config: SceneConfig = SceneConfig(), library: GarmentLibrary | None = None,
-                 pose_factory=PoseState, on_error=None):
+                 pose_factory=PoseState, on_error=None, prepare=None):
         self.body, self.config = body, config
         self.library = library if library is not None else GarmentLibrary(body)
         self.pose_factory = pose_factory
@@ -207,6 +208,7 @@ class Scene:
         self.level_cost: dict[int, float] = {}
         self.stats = TierStats([t.name for t in config.lod.tiers])
         self.on_error = on_error or (lambda message: None)
+        self.prepare = prepare  # prepare(agent) on the worker thread after a build (e.g. topology messages)
         self._slots = 0
         self._ready: list[Agent] = []
         self._jobs: dict = {}  # name -> ("add", spec) | ("shape", beta), newest wins
@@ -220,13 +222,17 @@ class Scene:
     def build_agent(self, spec: AgentSpec) -> Agent:
         """Build an agent now (loads shared garment data on first use). Raises what the garment makers raise."""
         tiers = self.config.lod.tiers
-        garments = {g.name: AgentGarment(self.library.get(g), tiers, self.config.fade_frames) for g in spec.garments}
-        if spec.publish_body:
-            garments["body"] = AgentGarment(self.library.get(GarmentSpec("body")), tiers, 0)
-        clamped = any([g.set_shape(np.asarray(spec.beta, dtype=np.float64)) for g in garments.values()])
+        specs = list(spec.garments) + ([GarmentSpec("body")] if spec.publish_body else [])
+        garments, clamped = {}, False
+        for g in specs:
+            garment = garments[g.name] = AgentGarment(self.library.get(g), tiers,
+                                                      0 if g.name == "body" else self.config.fade_frames)
+            clamped |= self.library.fitted(g, spec.beta, garment)
+        agent = Agent(spec, garments, self.pose_factory(), 0, clamped)
+        agent.beta = tuple(float(b) for b in spec.beta)
         with self._cond:
-            slot, self._slots = self._slots, self._slots + 1
-        return Agent(spec, garments, self.pose_factory(), slot, clamped)
+            agent.slot, self._slots = self._slots, self._slots + 1
+        return agent
 
     def request_agent(self, spec: AgentSpec):
         """Add (or rebuild) an agent off the frame path; a tick installs it when built."""
@@ -274,12 +280,17 @@ class Scene:
             try:
                 if kind == "add":
                     agent = self.build_agent(arg)
+                    if self.prepare is not None:
+                        self.prepare(agent)
                     with self._cond:
                         self._ready.append(agent)
                 else:
                     agent = self.agents.get(name)
-                    if agent is not None:
-                        agent.clamped = agent.set_shape(np.asarray(arg))
+                    if agent is not None and agent.beta != arg:  # a repeated shape costs nothing
+                        specs = {g.name: g for g in agent.spec.garments}
+                        specs.setdefault("body", GarmentSpec("body"))
+                        agent.clamped = any([self.library.fitted(specs[n], arg, g) for n, g in agent.garments.items()])
+                        agent.beta = arg
                         agent.shape_generation += 1
                         agent.dirty = True
             except Exception as error:  # a bad request never stops the scene: report, keep what runs
@@ -358,7 +369,7 @@ class Scene:
             candidate = Candidate(agent.name, agent.distance, agent.tier, costs, agent.waited)
             candidates.append(candidate)
             by_key[agent.name] = agent
-        decisions = schedule(candidates, config.budget_ms, config.protect_tiers)
+        decisions = schedule(candidates, config.budget_ms, config.protect_tiers, config.max_wait)
         decisions.sort(key=lambda d: by_key[d.key].distance)
         tier_ms = Counter()
         for decision in decisions:
@@ -371,17 +382,7 @@ class Scene:
                 report.skipped.append(agent.name)
                 continue
             report.estimate_ms += decision.estimate
-            t0 = time.perf_counter()
-            version = agent.pose.version
-            frames = agent.dress(decision.level)
-            if publish is not None:
-                publish(agent, frames, agent.pose.stamp_ns or now_ns)
-            ms = 1e3 * (time.perf_counter() - t0)
-            self._record(agent, decision.level, ms)
-            tier_ms[tier_name] += ms
-            self.stats.frames[tier_name] += 1
-            agent.level, agent.done_version, agent.dirty, agent.waited = decision.level, version, False, 0
-            agent.tier_dressed = decision.tier
+            tier_ms[tier_name] += self._dress(agent, decision.level, decision.tier, publish, now_ns)
             report.dressed.append(agent.name)
         for name in self.stats.names:
             if tier_ms[name] or self.stats.agents[name]:
@@ -389,6 +390,33 @@ class Scene:
         self.ticks += 1
         report.ms = 1e3 * (time.perf_counter() - start)
         return report
+
+    def _dress(self, agent: Agent, level: int, tier: int, publish, now_ns: int) -> float:
+        """Dress and publish one agent at `level`; returns the ms it took (recorded as that level's cost)."""
+        t0 = time.perf_counter()
+        version = agent.pose.version
+        frames = agent.dress(level)
+        if publish is not None:
+            publish(agent, frames, agent.pose.stamp_ns or now_ns)
+        ms = 1e3 * (time.perf_counter() - t0)
+        self._record(agent, level, ms)
+        self.stats.frames[self.config.lod.tiers[tier].name] += 1
+        agent.level, agent.done_version, agent.dirty, agent.waited = level, version, False, 0
+        agent.tier_dressed = tier
+        agent.frames += 1
+        agent.last_dressed = time.monotonic()
+        return ms
+
+    def dress_now(self, name: str, publish=None, now_ns: int = 0) -> bool:
+        """Dress agent `name` right away if it is near (a protected tier: the budget never lowers it) and in view
+        (a pose that just arrived, answered without waiting for the tick). Returns whether it was dressed."""
+        agent = self.agents.get(name)
+        if agent is None or agent.tier is None or not agent.visible or agent.tier >= self.config.protect_tiers:
+            return False
+        if agent.pose.version == agent.done_version and not agent.dirty:
+            return False
+        self._dress(agent, agent.tier, agent.tier, publish, now_ns)
+        return True
 
     def status(self) -> dict:
         return {"agents": len(self.agents), "tiers": self.stats.as_dict(),

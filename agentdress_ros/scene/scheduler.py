@@ -5,7 +5,8 @@ measures time itself. Rule: start every agent at its distance tier; while the es
 farthest agent that may be lowered and lower it one level at a time to the cheapest level, then skip it for this
 tick. Agents skipped on the ticks before are lowered only after those that were not (the longest waiting last), so
 over-budget far agents take turns: with room for half of them, each is updated on alternate ticks. Agents whose tier is below `protect`
-(the near ones) are never lowered or skipped, even when they alone exceed the budget.
+(the near ones) are never lowered or skipped, even when they alone exceed the budget; an agent skipped `max_wait`
+ticks in a row is not skipped again (dressed at its cheapest level), so no agent stops moving however full the tick.
 """
 from __future__ import annotations
 
@@ -33,8 +34,9 @@ class Decision:
     estimate: float  # ms the decision is expected to cost
 
 
-def schedule(candidates: Sequence[Candidate], budget_ms: float, protect: int = 1) -> list[Decision]:
-    """Decisions for every candidate (same order). `budget_ms` <= 0 disables the budget."""
+def schedule(candidates: Sequence[Candidate], budget_ms: float, protect: int = 1, max_wait: int = 0) -> list[Decision]:
+    """Decisions for every candidate (same order). `budget_ms` <= 0 disables the budget; `max_wait` <= 0 lets an
+    agent wait indefinitely."""
     level = {id(c): c.tier for c in candidates}
     skipped: set[int] = set()
     total = sum(c.costs[c.tier] for c in candidates)
@@ -47,7 +49,7 @@ def schedule(candidates: Sequence[Candidate], budget_ms: float, protect: int = 1
             while total > budget_ms and level[id(c)] < len(c.costs) - 1:
                 total += c.costs[level[id(c)] + 1] - c.costs[level[id(c)]]
                 level[id(c)] += 1
-            if total > budget_ms:
+            if total > budget_ms and not (max_wait > 0 and c.waited >= max_wait):
                 total -= c.costs[level[id(c)]]
                 skipped.add(id(c))
     decisions = []

@@ -1,0 +1,280 @@
+"""The node's crowd mode: parameters and topics of many agents mapped onto `agentdress_ros.scene` (wiring only).
+
+Active when the parameter `agents` lists names. Per agent `<a>` (topics relative to the node's namespace; `~` is
+/agentdress_node):
+  in   <a>/joint_states          sensor_msgs/JointState      (qos.joint_states.*)
+  in   <a>/body_shape            std_msgs/Float32MultiArray  (qos.shape.*)
+  out  ~/<a>/<garment>/points    sensor_msgs/PointCloud2     (qos.points.*), stamped with the answered JointState
+  out  ~/<a>/<garment>/mesh      shape_msgs/Mesh             reliable, transient local, once per (re)build
+  out  ~/<a>/body/points|mesh    with publish_body
+and for the scene:
+  in   <viewer_topic>            geometry_msgs/PoseStamped   the headset, in the agents' frame (or moved there by
+                                                             the fixed `viewer_offset` x, y, z, yaw)
+Each agent takes the node's garments, garment_databases, garment_vertices, engine, shape, frame_id and
+publish_body, overridden per agent by `agent.<a>.<parameter>` (startup, from the YAML), plus `agent.<a>.origin`
+(its frame's origin in the scene, for distances) and `agent.<a>.extra_cost_ms` (an artificial cost per frame, for
+tests and benchmarks of the frame budget). Agents added to `agents` at run time are built on the scene's worker
+thread and go live on a later tick; removed ones are dropped at once (their publishers destroyed).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import JointState, PointCloud2
+from shape_msgs.msg import Mesh
+from std_msgs.msg import Float32MultiArray
+
+from ..scene import AgentSpec, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tiers
+from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
+from .messages import make_mesh, make_point_cloud, set_cloud_vertices
+from .params import ParameterError, validate
+
+__all__ = ["AGENT_KEYS", "Crowd", "agent_override_names", "scene_config"]
+
+#: Per-agent override keys (`agent.<name>.<key>`): node parameters an agent may set for itself, and crowd-only ones.
+AGENT_KEYS = ("garments", "garment_databases", "garment_vertices", "engine", "shape", "frame_id", "publish_body",
+              "origin", "extra_cost_ms")
+
+
+def validate_agent_key(key: str, value):
+    """Coerce and check one per-agent override; ParameterError with the reason."""
+    if key == "origin":
+        if value is None or isinstance(value, (str, bool)) or len(value) != 3 or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in value):
+            raise ParameterError(f"origin must be three finite numbers (x, y, z), got {value!r}")
+        return tuple(float(v) for v in value)
+    if key == "extra_cost_ms":
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1000:
+            raise ParameterError(f"extra_cost_ms must be a number in [0, 1000], got {value!r}")
+        return float(value)
+    return validate(key, value)
+
+
+def agent_override_names(overrides) -> list[str]:
+    """`agent.<name>.<key>` parameter names among the node's parameter overrides (the YAML)."""
+    return sorted(n for n in overrides if n.startswith("agent.") and n.count(".") >= 2)
+
+
+def scene_config(config: dict) -> SceneConfig:
+    """The node's crowd parameters -> SceneConfig (ValueError with the reason, e.g. a bad tier line)."""
+    lod = LodPolicy(tiers=parse_tiers(config["lod.tiers"]), hysteresis=config["lod.hysteresis"],
+                    fov_deg=config["lod.fov_deg"], margin_deg=config["lod.margin_deg"], cull=config["lod.cull"])
+    return SceneConfig(lod=lod, lod_enabled=config["lod.enabled"], budget_ms=config["budget_ms"],
+                       fade_frames=int(config["lod.fade_frames"]))
+
+
+class Crowd:
+    """The crowd on `node` (an AgentDressNode): subscriptions and publishers per agent, the viewer, the tick."""
+
+    def __init__(self, node, body):
+        self.node, self.config = node, node.config
+        self.scene = Scene(body, scene_config(self.config), pose_factory=self._pose_input,
+                           on_error=lambda message: node._warn("crowd/build", message), prepare=self._prepare)
+        self.overrides: dict[str, dict] = {}
+        for name in agent_override_names(node._parameter_overrides):
+            _, agent, key = name.split(".", 2)
+            if key not in AGENT_KEYS:
+                raise ParameterError(f"{name}: unknown per-agent parameter {key!r}; one of {', '.join(AGENT_KEYS)}")
+            value = node._parameter_overrides[name].value
+            self.overrides.setdefault(agent, {})[key] = validate_agent_key(key, value)
+        self.entities: dict[str, dict] = {}  # agent -> {"subs": [...], "points": {g: pub}, "mesh": {g: pub}}
+        self.clouds: dict[tuple, PointCloud2] = {}
+        self.topology: dict[str, dict] = {}  # agent -> {garment: Mesh}, made on the worker
+        self.viewer_sub = None
+        if self.config["viewer_topic"]:
+            self.viewer_sub = node.create_subscription(PoseStamped, self.config["viewer_topic"], self._on_viewer,
+                                                       node._qos("viewer"))
+        self.viewer_stamp_ns = 0
+        self.set_agents(self.config["agents"], initial=True)
+
+    # ---- agents ---------------------------------------------------------------------------------------------
+    def _pose_input(self):
+        return PoseInput(self.node._stamp_jump_ns())
+
+    def apply_parameters(self, changed: set):
+        """Executor thread, after a successful `ros2 param set`."""
+        if changed & {"budget_ms", "viewer_offset"} or any(n.startswith("lod.") for n in changed):
+            self.scene.config = scene_config(self.config)
+        if "stamp_jump_threshold_s" in changed:
+            for agent in self.scene.agents.values():
+                agent.pose.stamp_jump_ns = self.node._stamp_jump_ns()
+        if changed & (set(AGENT_KEYS) | {"skinned_fallback"}):
+            self.rebuild()
+        if "agents" in changed:
+            self.set_agents(self.config["agents"])
+
+    def spec(self, name: str) -> AgentSpec:
+        """The agent's spec: the node's parameters with the agent's overrides."""
+        config = {**{k: self.config[k] for k in AGENT_KEYS if k in self.config}, **self.overrides.get(name, {})}
+        garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g),
+                                     config["engine"] if config["garment_databases"].get(g) else ())
+                         for g in config["garments"])
+        beta = tuple(float(b) for b in check_shape_values(config["shape"]).beta)
+        return AgentSpec(name, garments, beta, config["frame_id"], config.get("origin", (0.0, 0.0, 0.0)),
+                         config.get("extra_cost_ms", 0.0), config["publish_body"])
+
+    def set_agents(self, names, initial: bool = False):
+        """Make the agents `names`: build new ones (at startup now, later on the worker), drop the others."""
+        for name in [n for n in self.entities if n not in names]:
+            self.scene.remove_agent(name)
+            self._destroy(name)
+        for name in names:
+            if name in self.entities:
+                continue
+            self._create_inputs(name)
+            if initial:
+                agent = self.scene.build_agent(self.spec(name))
+                self._prepare(agent)
+                self.scene.install(agent)
+                self._install(agent)
+            else:
+                self.scene.request_agent(self.spec(name))
+
+    def rebuild(self):
+        """Every agent again from the current parameters (a garment or engine change), off the frame path."""
+        for name in self.entities:
+            self.scene.request_agent(self.spec(name))
+
+    def _create_inputs(self, name: str):
+        node = self.node
+        subs = [node.create_subscription(JointState, f"{name}/joint_states",
+                                         node._guarded(f"{name}/joint_states", lambda m, n=name: self._on_joint_state(n, m)),
+                                         node._qos("joint_states")),
+                node.create_subscription(Float32MultiArray, f"{name}/body_shape",
+                                         node._guarded(f"{name}/body_shape", lambda m, n=name: self._on_shape(n, m)),
+                                         node._qos("shape"))]
+        self.entities[name] = {"subs": subs, "points": {}, "mesh": {}, "installed": None}
+
+    def _prepare(self, agent):
+        """Worker thread: topology messages of a built agent."""
+        self.topology[agent.name] = {g: make_mesh(garment.rest_frame(), garment.faces)
+                                     for g, garment in agent.garments.items()}
+
+    def _install(self, agent):
+        """Executor thread: publishers of a new (or rebuilt) agent, its topology sent."""
+        entity = self.entities.get(agent.name)
+        if entity is None:
+            return
+        node = self.node
+        for g in [g for g in entity["points"] if g not in agent.garments]:
+            node.destroy_publisher(entity["points"].pop(g))
+            node.destroy_publisher(entity["mesh"].pop(g))
+            self.clouds.pop((agent.name, g), None)
+        for g in agent.garments:
+            if g not in entity["points"]:
+                entity["points"][g] = node.create_publisher(PointCloud2, f"~/{agent.name}/{g}/points",
+                                                            node._qos("points"))
+                entity["mesh"][g] = node.create_publisher(Mesh, f"~/{agent.name}/{g}/mesh", node.topology_qos)
+            mesh = self.topology.get(agent.name, {}).get(g)
+            if mesh is not None:
+                entity["mesh"][g].publish(mesh)
+        entity["installed"] = agent
+
+    def _destroy(self, name: str):
+        entity = self.entities.pop(name, None)
+        if entity is None:
+            return
+        for sub in entity["subs"]:
+            self.node.destroy_subscription(sub)
+        for pub in list(entity["points"].values()) + list(entity["mesh"].values()):
+            self.node.destroy_publisher(pub)
+        for key in [k for k in self.clouds if k[0] == name]:
+            del self.clouds[key]
+        self.topology.pop(name, None)
+
+    # ---- inputs ---------------------------------------------------------------------------------------------
+    def _on_joint_state(self, name: str, msg: JointState):
+        node = self.node
+        node.stats.counts["joint_states_received"] += 1
+        agent = self.scene.agents.get(name)
+        if agent is None:
+            return
+        try:
+            unknown = agent.pose.accept(msg.name, msg.position, stamp_to_ns(msg.header.stamp.sec,
+                                                                               msg.header.stamp.nanosec))
+            if unknown:
+                node.stats.counts["unknown_joint_names"] += len(unknown)
+                node._warn(f"{name}/joint_states/unknown_names", f"{name}: ignoring unknown joint names: "
+                           + ", ".join(unknown[:10]))
+        except InputRejected as error:
+            node._reject(f"{name}/joint_states", error)
+            return
+        if agent.pose.timeline_jump_ns:  # a cut in this agent's motion: its decay history is from the old one
+            node.stats.counts["new_timelines"] += 1
+            for garment in agent.garments.values():
+                garment.reset()
+        if self.config["answer_on_arrival"] and time.monotonic() - agent.last_dressed >= 0.5 / self.config["rate_hz"]:
+            self.scene.dress_now(name, self._publish)
+
+    def _on_shape(self, name: str, msg: Float32MultiArray):
+        self.node.stats.counts["shapes_received"] += 1
+        try:
+            update = check_shape_values(msg.data)
+        except InputRejected as error:
+            self.node._reject(f"{name}/body_shape", error)
+            return
+        if update.clamped:
+            self.node._warn(f"{name}/body_shape/clamped", f"{name}/body_shape: {update.message}")
+        self.scene.request_shape(name, update.beta)
+
+    def _on_viewer(self, msg: PoseStamped):
+        p, q = msg.pose.position, msg.pose.orientation
+        try:
+            viewer = Viewer.from_pose((p.x, p.y, p.z), (q.x, q.y, q.z, q.w), self.config["viewer_offset"])
+        except ValueError as error:
+            self.node._reject("viewer_pose", InputRejected("non_finite", str(error)))
+            return
+        self.viewer_stamp_ns = stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        self.scene.set_viewer(viewer)
+
+    # ---- the tick -------------------------------------------------------------------------------------------
+    def _publish(self, agent, frames: dict, stamp_ns: int):
+        entity = self.entities.get(agent.name)
+        if entity is None or entity["installed"] is not agent:
+            return
+        from .messages import stamp_from_ns
+
+        stamp = stamp_from_ns(stamp_ns or self.node.get_clock().now().nanoseconds)
+        for g, vertices in frames.items():
+            if not np.isfinite(vertices).all():  # never emit garbage: keep the last good cloud
+                self.node.stats.counts[f"non_finite_output:{agent.name}/{g}"] += 1
+                continue
+            key = (agent.name, g)
+            cloud = self.clouds.get(key)
+            if cloud is None:
+                cloud = self.clouds[key] = make_point_cloud()
+            set_cloud_vertices(cloud, vertices, stamp, agent.spec.frame_id)
+            entity["points"][g].publish(cloud)
+
+    def tick(self) -> dict:
+        for agent in list(self.scene.agents.values()):
+            entity = self.entities.get(agent.name)
+            if entity is not None and entity["installed"] is not agent:
+                self._install(agent)
+        report = self.scene.tick(self._publish)
+        for agent in list(self.scene.agents.values()):  # installed by this tick (built on the worker)
+            entity = self.entities.get(agent.name)
+            if entity is not None and entity["installed"] is not agent:
+                self._install(agent)
+        return report
+
+    def keepalive(self):
+        """Re-send the last clouds of agents in view (a display that joined late); culled agents stay silent."""
+        for (name, g), cloud in list(self.clouds.items()):
+            agent = self.scene.agents.get(name)
+            if agent is not None and agent.visible and name in self.entities:
+                self.entities[name]["points"][g].publish(cloud)
+
+    def status(self) -> dict:
+        status = self.scene.status()
+        status["agents_detail"] = {a.name: {"tier": None if a.tier is None else self.scene.config.lod.tiers[a.tier].name,
+                                            "visible": a.visible, "frames": a.frames,
+                                            "distance": round(a.distance, 2)}
+                                   for a in self.scene.agents.values()}
+        status["pending"] = sorted(set(self.entities) - set(self.scene.agents))
+        return status
+
+    def stop(self):
+        self.scene.stop()
