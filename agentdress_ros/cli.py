@@ -1,7 +1,9 @@
 """The `agentdress` command: demos, the viewer, database builds and benchmarks (JSON), one subcommand each.
 
 `agentdress bench node ...` (latency, rate and CPU of the node over real DDS) takes the options of
-agentdress_ros.evaluate.bench_node; `agentdress bench body|synth` those listed by `agentdress bench -h`.
+agentdress_ros.evaluate.bench_node, `agentdress bench crowd ...` those of agentdress_ros.evaluate.bench_crowd (one
+node dressing N agents); `agentdress bench body|synth` those listed by `agentdress bench -h`. `agentdress demo
+--agents N ...` publishes a crowd (agentdress_ros.ros.crowd_demo) instead of one agent.
 """
 from __future__ import annotations
 
@@ -139,6 +141,14 @@ def main(argv=None) -> int:
         from .evaluate.bench_node import main as bench_node_main
 
         return bench_node_main(argv[2:])
+    if argv[:2] == ["bench", "crowd"]:  # one node dressing N agents, poses from another process
+        from .evaluate.bench_crowd import main as bench_crowd_main
+
+        return bench_crowd_main(argv[2:])
+    if argv[:1] == ["demo"] and any(a == "--agents" or a.startswith("--agents=") for a in argv):
+        from .ros.crowd_demo import crowd_main
+
+        return crowd_main(argv[1:])
     for name, module, function, _ in PASSTHROUGH:
         if argv[:1] == [name]:  # argparse's REMAINDER would reject a leading --option
             return _passthrough(module, function)(argparse.Namespace(rest=argv[1:]))

@@ -41,6 +41,23 @@ def _proc_rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def latency_recorder(state: dict):
+    """A PointCloud2 callback appending stamp -> arrival ms to state["latency"] while state["measuring"], each
+    stamp once (keep-alive repeats skipped; state["seen"] holds the stamps), and the cloud's width to
+    state["vertices"]."""
+
+    def on_cloud(msg):
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if stamp in state["seen"]:
+            return  # a keep-alive repeat
+        state["seen"].add(stamp)
+        if state["measuring"]:
+            state["latency"].append((time.time_ns() - stamp) * 1e-6)
+            state["vertices"] = msg.width
+
+    return on_cloud
+
+
 def _run_one(vertices, rate_hz, seconds, publish_rate_hz, warmup, soak_seconds, garment, database,
              log_dir: Path) -> dict:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -68,14 +85,7 @@ def _run_one(vertices, rate_hz, seconds, publish_rate_hz, warmup, soak_seconds, 
         with ros_node("agentdress_bench", domain) as (node, executor):
             state = {"latency": [], "seen": set(), "status": [], "measuring": False, "sent": 0, "frame": 0}
 
-            def on_cloud(msg):
-                stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-                if stamp in state["seen"]:
-                    return  # a keep-alive repeat
-                state["seen"].add(stamp)
-                if state["measuring"]:
-                    state["latency"].append((time.time_ns() - stamp) * 1e-6)
-                    state["vertices"] = msg.width
+            on_cloud = latency_recorder(state)
 
             node.create_subscription(PointCloud2, f"/agentdress_node/{garment}/points", on_cloud,
                                      QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,

@@ -274,6 +274,7 @@ class Crowd:
                                             "distance": round(a.distance, 2)}
                                    for a in self.scene.agents.values()}
         status["pending"] = sorted(set(self.entities) - set(self.scene.agents))
+        status["worker_idle"] = self.scene.idle()  # no agent build or shape refit waiting
         return status
 
     def stop(self):

@@ -80,7 +80,7 @@ def demo_main(argv=None) -> int:
     from std_msgs.msg import Float32MultiArray
 
     from ..motion.joint_names import JOINT_NAMES
-    from .spin import spin_until_shutdown
+    from .spin import run_publisher
 
     argv = list(sys.argv[1:] if argv is None else argv)
     ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
@@ -122,16 +122,7 @@ def demo_main(argv=None) -> int:
     print(f"agentdress demo: publishing {args.motion} ({player.duration:.1f} s loop) on {args.topic} at "
           f"{args.rate:g} Hz" + (f", shape sweep every {args.shape_sweep:g} s" if args.shape_sweep > 0 else ""),
           flush=True)
-    code = 0
-    try:
-        spin_until_shutdown(lambda: rclpy.spin(node))
-    except SystemExit as done:
-        code = int(done.code or 0)
-    finally:
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
-    return code
+    return run_publisher(node)
 
 
 if __name__ == "__main__":

@@ -21,3 +21,20 @@ def spin_until_shutdown(spin) -> None:
     except RuntimeError:
         if rclpy.ok():
             raise
+
+
+def run_publisher(node) -> int:
+    """Spin a publishing node (the demo drivers) until a signal, or until a callback raises SystemExit (its code is
+    returned); the node and the context are shut down either way."""
+    import rclpy
+
+    code = 0
+    try:
+        spin_until_shutdown(lambda: rclpy.spin(node))
+    except SystemExit as done:
+        code = int(done.code or 0)
+    finally:
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return code

@@ -1,0 +1,151 @@
+"""`agentdress bench crowd --agents 1 10 25 50 100 --seconds S`: one node dressing N agents over real DDS.
+
+For each N the node runs as a child process in crowd mode (`agents: [agent_000, ...]`, T-shirt and trousers from the
+shipped databases, examples pose model); a second child process (`agentdress demo --agents N`) publishes every
+agent's JointState at `--pose-rate` and, in the spread run, a fixed viewer pose; this process listens to the nearest
+agent's T-shirt cloud and to ~/status. Two runs per N:
+  near    every agent within 3 m, LOD off (lod.enabled false): every agent fully dressed on every new pose
+  spread  agents walking about a 30 m plaza, a viewer at its edge looking in, LOD, culling and the 8 ms budget on
+Reported per N (JSON): tick_ms p50/p99 (the node's whole crowd tick: decide, dress, publish), late ticks (timer
+ticks more than 1.5 periods after the previous one), clouds per second per agent (frames dressed / seconds / N,
+from the node's counts), agents per tier (culled among them), frames degraded by the budget, node CPU (100 = one
+core) and RSS, RSS added per agent (against the smallest N of the same run), the nearest agent's JointState ->
+PointCloud2 latency p99 (stamp to arrival here).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from .bench_node import _proc_cpu_seconds, _proc_rss_mb, latency_recorder
+
+__all__ = ["bench_crowd", "main"]
+
+ROOT = Path(__file__).resolve().parents[2]
+DATABASES = {"tshirt": ROOT / "data" / "tshirt_default.h5", "trousers": ROOT / "data" / "trousers_default.h5"}
+VIEWER = (-16.0, 0.0, 1.6, 0.0)  # x, y, z, yaw: at the plaza's edge, looking along +x into it
+
+
+def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: float, budget_ms: float,
+             warmup: float, log_dir: Path) -> dict:
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import String
+
+    from ..ros.crowd_demo import agent_names
+    from ..ros.harness import ChildProcess, node_args, ros_env, ros_node, spin_until
+    from ..scene.scene import percentiles
+
+    env = ros_env(log_dir=str(log_dir))
+    domain = int(env["ROS_DOMAIN_ID"])
+    names = agent_names(count)
+    params = {"agents": names, "garments": list(DATABASES),
+              "garment_databases": [f"{g}:{p}" for g, p in DATABASES.items()],
+              "rate_hz": float(rate_hz), "status_rate_hz": 1.0, "budget_ms": float(budget_ms),
+              "lod.enabled": mode == "spread"}
+    node = ChildProcess(node_args(params), env, log_dir / f"node_{mode}_{count}.log")
+    demo_args = [sys.executable, "-m", "agentdress_ros.ros.crowd_demo", "--agents", str(count), "--rate",
+                 str(pose_rate)]
+    demo_args += ["--near"] if mode == "near" else ["--viewer-at", *(str(v) for v in VIEWER)]
+    demo = None
+    try:
+        if not node.wait_for_output("crowd ready", timeout=600.0):
+            raise RuntimeError(f"node did not start:\n{node.output()}")
+        demo = ChildProcess(demo_args, env, log_dir / f"demo_{mode}_{count}.log")
+        with ros_node("agentdress_bench_crowd", domain) as (client, executor):
+            state = {"latency": [], "seen": set(), "status": [], "measuring": False}
+
+            on_cloud = latency_recorder(state)
+            client.create_subscription(String, "/agentdress_node/status",
+                                       lambda m: state["status"].append(json.loads(m.data)), 10)
+            if not spin_until(executor, lambda: state["status"] and state["status"][-1]["counts"].get(
+                    "joint_states_received", 0) > count, 120.0):
+                raise RuntimeError(f"no poses reached the node:\n{node.output()}\n{demo.output()}")
+            spin_until(executor, lambda: False, 2.0)  # the shapes sent at start reach the node
+            if not spin_until(executor, lambda: state["status"][-1]["crowd"]["worker_idle"], 600.0):
+                raise RuntimeError("the node did not finish fitting the agents' shapes within 600 s")
+            spin_until(executor, lambda: False, warmup)
+            detail = state["status"][-1]["crowd"]["agents_detail"]
+            nearest = min(detail, key=lambda n: (detail[n]["distance"], n))
+            client.create_subscription(PointCloud2, f"/agentdress_node/{nearest}/tshirt/points", on_cloud,
+                                       QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
+                                                  reliability=ReliabilityPolicy.BEST_EFFORT))
+            spin_until(executor, lambda: False, 3.0)  # discovery of the new subscription
+            status0 = state["status"][-1]
+            cpu0, wall0 = _proc_cpu_seconds(node.pid), time.monotonic()
+            state["measuring"] = True
+            spin_until(executor, lambda: False, seconds)
+            state["measuring"] = False
+            wall = time.monotonic() - wall0
+            cpu = _proc_cpu_seconds(node.pid) - cpu0
+            rss = _proc_rss_mb(node.pid)
+            n_status = len(state["status"])
+            spin_until(executor, lambda: len(state["status"]) > n_status, 3.0)
+            status = state["status"][-1]
+        crowd, crowd0 = status["crowd"], status0["crowd"]
+        frames = sum(a["frames"] for a in crowd["agents_detail"].values())
+        frames0 = sum(a["frames"] for a in crowd0["agents_detail"].values())
+        tiers = {name: {"agents": t["agents"], "culled": t["culled"],
+                        "frames_per_s": round((t["frames"] - crowd0["tiers"][name]["frames"]) / wall, 1),
+                        "degraded_frames": t["degraded_frames"] - crowd0["tiers"][name]["degraded_frames"],
+                        "ms": t["ms"]}
+                 for name, t in crowd["tiers"].items()}
+        return {
+            "agents": count, "mode": mode, "seconds": round(wall, 1), "pose_rate_hz": pose_rate, "rate_hz": rate_hz,
+            "budget_ms": budget_ms if mode == "spread" else None,
+            "tick_ms": status["tick_ms"], "late_ticks": status["late_ticks"] - status0["late_ticks"],
+            "tick_rate_hz": status["tick_rate_hz"],
+            "clouds_per_s_per_agent": round((frames - frames0) / wall / count, 2),
+            "tiers": tiers,
+            "cpu_percent": round(100.0 * cpu / wall, 1), "rss_mb": round(rss, 1),
+            "nearest_agent": nearest, "nearest_latency_ms": percentiles(state["latency"], digits=3),
+        }
+    finally:
+        if demo is not None:
+            demo.stop()
+        rc = node.stop()
+        if rc not in (0, None):
+            print(f"bench: node exited with {rc}:\n{node.output()}", file=sys.stderr)
+
+
+def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near", "spread"),
+                pose_rate: float = 30.0, rate_hz: float = 90.0, budget_ms: float = 8.0, warmup: float = 5.0):
+    """Yields one result dict per (mode, N), RSS added per agent against the smallest N of the same mode."""
+    log_dir = Path(tempfile.mkdtemp(prefix="agentdress_bench_crowd_"))
+    for mode in modes:
+        base = None
+        for count in sorted(counts):
+            result = _run_one(int(count), mode, float(seconds), float(pose_rate), float(rate_hz), float(budget_ms),
+                              float(warmup), log_dir)
+            if base is None:
+                base = result
+            elif count > base["agents"]:
+                result["rss_added_per_agent_mb"] = round((result["rss_mb"] - base["rss_mb"])
+                                                         / (count - base["agents"]), 3)
+            result["load_avg_1min"] = round(os.getloadavg()[0], 2)
+            result["logs"] = str(log_dir)
+            yield result
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="agentdress bench crowd", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--agents", type=int, nargs="+", default=[1, 10, 25, 50, 100])
+    parser.add_argument("--seconds", type=float, default=20.0, help="measured seconds per N")
+    parser.add_argument("--modes", nargs="+", choices=("near", "spread"), default=["near", "spread"])
+    parser.add_argument("--pose-rate", type=float, default=30.0, help="JointState rate per agent, Hz (default 30)")
+    parser.add_argument("--rate", type=float, default=90.0, help="node rate_hz")
+    parser.add_argument("--budget-ms", type=float, default=8.0)
+    args = parser.parse_args(argv)
+    for result in bench_crowd(args.agents, args.seconds, args.modes, args.pose_rate, args.rate, args.budget_ms):
+        print(json.dumps(result), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
