@@ -6,7 +6,11 @@ agent's JointState at `--pose-rate` and, in the spread run, a fixed viewer pose;
 agent's T-shirt cloud and to ~/status. Two runs per N:
   near    every agent within 3 m, LOD off (lod.enabled false): every agent fully dressed on every new pose
   spread  agents walking about a 30 m plaza, a viewer at its edge looking in, LOD, culling and the 8 ms budget on
-Reported per N (JSON): tick_ms p50/p99 (the node's whole crowd tick: decide, dress, publish), late ticks (timer
+  cpu     no DDS: the scene in this process, every agent given a new pose every tick and dressed at one level, its
+          clouds packed (not published); CPU time of this process (not wall time: what a loaded machine takes from
+          the process does not count) per agent frame at each level, and per tick with all N agents at the first
+Reported per N (JSON): tick_ms p50/p99 (the node's crowd timer tick: decide, dress, publish; near agents answered
+on arrival are dressed in their subscription callback, outside it), late ticks (timer
 ticks more than 1.5 periods after the previous one), clouds per second per agent (frames dressed / seconds / N,
 from the node's counts), agents per tier (culled among them), frames degraded by the budget, node CPU (100 = one
 core) and RSS, RSS added per agent (against the smallest N of the same run), the nearest agent's JointState ->
@@ -113,11 +117,63 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
             print(f"bench: node exited with {rc}:\n{node.output()}", file=sys.stderr)
 
 
+def _run_cpu(count: int, ticks: int = 60) -> dict:
+    """CPU ms per agent frame at each tier's level, and per tick, for `count` agents (in process, no DDS)."""
+    from ..body import AnnyBody
+    from ..ros.crowd_demo import CrowdPlayer
+    from ..ros.messages import make_point_cloud, set_cloud_vertices
+    from ..scene import AgentSpec, GarmentSpec, Scene, SceneConfig
+
+    body = AnnyBody()
+    scene = Scene(body, SceneConfig(lod_enabled=False, budget_ms=0.0, fade_frames=0))
+    garments = tuple(GarmentSpec(g, database=str(p), engine=(("pose_model", "examples"),)) for g, p in DATABASES.items())
+    player = CrowdPlayer(count, 30.0)
+    try:
+        for i, track in enumerate(player.tracks):
+            scene.install(scene.build_agent(AgentSpec(f"agent_{i:03d}", garments, tuple(track.beta))))
+        clouds = {}
+
+        def pack(agent, frames, stamp_ns):
+            for g, vertices in frames.items():
+                set_cloud_vertices(clouds.setdefault((agent.name, g), make_point_cloud()), vertices)
+
+        per_level = {}
+        for level, tier in enumerate(scene.config.lod.tiers):
+            agents, spent = list(scene.agents.values()), 0.0
+            for t in range(ticks + 5):
+                rotvecs, roots = player.frames(t / 30.0)
+                for i, agent in enumerate(agents):
+                    agent.pose.set(rotvecs[i], roots[i])
+                cpu0 = time.process_time()
+                for agent in agents:
+                    scene._dress(agent, level, 0, pack, 0)
+                spent += (time.process_time() - cpu0) if t >= 5 else 0.0  # the first ticks warm up
+            per_level[tier.name] = round(1e3 * spent / (ticks * count), 4)
+        tick = []
+        for t in range(ticks):
+            rotvecs, roots = player.frames(t / 30.0)
+            for i, agent in enumerate(scene.agents.values()):
+                agent.pose.set(rotvecs[i], roots[i])
+            cpu0 = time.process_time()
+            scene.tick(pack)
+            tick.append(1e3 * (time.process_time() - cpu0))
+    finally:
+        scene.stop()
+    from ..scene.scene import percentiles
+
+    return {"agents": count, "mode": "cpu", "cpu_ms_per_agent_frame": per_level,
+            "cpu_ms_per_tick_all_near": percentiles(tick, digits=3)}
+
+
 def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near", "spread"),
                 pose_rate: float = 30.0, rate_hz: float = 90.0, budget_ms: float = 8.0, warmup: float = 5.0):
     """Yields one result dict per (mode, N), RSS added per agent against the smallest N of the same mode."""
     log_dir = Path(tempfile.mkdtemp(prefix="agentdress_bench_crowd_"))
     for mode in modes:
+        if mode == "cpu":
+            for count in sorted(counts):
+                yield _run_cpu(int(count))
+            continue
         base = None
         for count in sorted(counts):
             result = _run_one(int(count), mode, float(seconds), float(pose_rate), float(rate_hz), float(budget_ms),
@@ -137,7 +193,7 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--agents", type=int, nargs="+", default=[1, 10, 25, 50, 100])
     parser.add_argument("--seconds", type=float, default=20.0, help="measured seconds per N")
-    parser.add_argument("--modes", nargs="+", choices=("near", "spread"), default=["near", "spread"])
+    parser.add_argument("--modes", nargs="+", choices=("near", "spread", "cpu"), default=["near", "spread"])
     parser.add_argument("--pose-rate", type=float, default=30.0, help="JointState rate per agent, Hz (default 30)")
     parser.add_argument("--rate", type=float, default=90.0, help="node rate_hz")
     parser.add_argument("--budget-ms", type=float, default=8.0)
