@@ -11,10 +11,11 @@ BIN := $(VENV)/bin
 PIP := $(BIN)/python -m pip
 RUNTIME_STAMP := $(VENV)/.stamp-runtime
 TEST_STAMP := $(VENV)/.stamp-test
+WEB_STAMP := web/node_modules/.stamp-npm
 
-.PHONY: setup setup-test test run bench bench-node
+.PHONY: setup setup-test test run bench bench-node web
 
-setup: $(RUNTIME_STAMP)
+setup: $(RUNTIME_STAMP) $(WEB_STAMP)
 
 setup-test: $(TEST_STAMP)
 
@@ -42,7 +43,18 @@ $(TEST_STAMP): requirements/test.txt requirements/build.txt $(RUNTIME_STAMP)
 	$(PIP) install -r requirements/test.txt -r requirements/build.txt
 	touch $@
 
-test: setup-test
+# The web client's three.js from the npm registry, at the version and checksum of web/package-lock.json (npm ci);
+# node_modules is never committed, and after this the client works offline.
+web: $(WEB_STAMP)
+
+$(WEB_STAMP): web/package.json web/package-lock.json
+	@command -v npm >/dev/null 2>&1 || { echo "error: npm is missing: the web client's three.js comes from the npm" \
+		"registry. Install Node.js (18 or later) with npm - Debian/Ubuntu: 'apt-get install -y nodejs npm';" \
+		"anywhere: https://nodejs.org/en/download - then rerun make" >&2; exit 1; }
+	cd web && npm ci --ignore-scripts --no-audit --no-fund
+	touch $@
+
+test: setup-test $(WEB_STAMP)
 	$(BIN)/python -m pytest -q -rs test
 
 # Node + demo motion + web viewer on the default configuration (prints the URL to open); Ctrl-C stops all three.

@@ -24,6 +24,9 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", [p for p in glob("launch/*") if os.path.isfile(p)]),
         (f"share/{PACKAGE}/data", glob("data/*.h5")),  # the shipped garment databases
+        # the web client (three.js itself comes from npm: `npm ci` in share/agentdress_ros/web)
+        (f"share/{PACKAGE}/web", ["web/index.html", "web/package.json", "web/package-lock.json"]),
+        (f"share/{PACKAGE}/web/src", glob("web/src/*")),
     ],
     include_package_data=True,
     python_requires=">=3.10",
@@ -39,11 +42,13 @@ setup(
         "pyyaml",
         "matplotlib",
         "rtree",  # trimesh's spatial index (closest-point queries)
+        "websockets",  # agentdress view: the display server
+        "cryptography",  # agentdress view: its self-signed certificate
     ],
     extras_require={
         # Offline database builds (ground-truth cloth drapes); never part of the runtime install.
         "build": ["newton==1.8.0", "warp-lang==1.19.0", "dask[distributed]==2026.8.0"],
-        "test": ["pytest", "hypothesis", "colcon-core", "colcon-ros"],
+        "test": ["pytest", "hypothesis", "colcon-core", "colcon-ros", "playwright"],
     },
     maintainer="agentdress_ros maintainers",
     maintainer_email="maintainers@agentdress.invalid",

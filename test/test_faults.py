@@ -225,31 +225,35 @@ def _http(port: int, method: str, path: str) -> tuple[int, bytes]:
         connection.close()
 
 
-def test_viewer_answers_bad_requests_with_400_and_goes_on():
-    from agentdress_ros.ros.viewer import SceneState, make_server
+def test_viewer_answers_bad_requests_with_400_and_goes_on(tmp_path):
+    from agentdress_ros.display.scene import DisplayScene
+    from agentdress_ros.display.server import DisplayServer
 
-    state = SceneState()
-    state.set_mesh("tshirt", np.zeros((3, 3), np.float32), np.array([[0, 1, 2]]))
-    server = make_server(state, "127.0.0.1", 0)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    port = server.server_address[1]
+    web = tmp_path / "web"  # a stand-in client folder: the server's answers do not depend on three.js being there
+    (web / "src").mkdir(parents=True)
+    (web / "index.html").write_text("<!doctype html>")
+    scene = DisplayScene()
+    scene.set_mesh("agentdress_node", "tshirt", np.zeros((3, 3), np.float32), np.array([[0, 1, 2]]))
+    server = DisplayServer(scene, web, "127.0.0.1", 0)
+    port = server.start()
+    token = f"/{server.token}"
     try:
-        for path in ("/frame?since=abc", "/frame?since=", "/frame?since=1.5", "/frame?since=%ff"):
-            status, body = _http(port, "GET", path)
-            assert status == 400 and b"since" in body, (path, status, body)
-        assert _http(port, "POST", "/frame")[0] == 405
-        assert _http(port, "GET", "/faces/nothing")[0] == 404
-        with socket.create_connection(("127.0.0.1", port), timeout=10) as raw:  # not HTTP at all
+        for path in ("/", "/state.json", "/x" + token[2:] + "/", token[:-1] + "/"):  # no token, or a wrong one
+            assert _http(port, "GET", path)[0] == 403, path
+        status, body = _http(port, "GET", token + "/ws")  # the socket's path without a WebSocket upgrade
+        assert status == 400 and b"WebSocket" in body, (status, body)
+        assert _http(port, "POST", token + "/")[0] == 405
+        assert _http(port, "GET", token + "/src/../../setup.py")[0] == 404
+        assert _http(port, "GET", token + "/%ff%fe")[0] == 404
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as raw:  # not HTTP at all: closed, no page
             raw.sendall(b"\x00\x01 garbage garbage garbage\r\n\r\n")
             reply = b"".join(iter(lambda: raw.recv(4096), b""))
-            assert b"Error code: 400" in reply, reply[:300]
-        status, body = _http(port, "GET", "/frame?since=0")
-        assert status == 200 and json.loads(body[4:4 + int.from_bytes(body[:4], "little")])["seq"] >= 1
-        assert _http(port, "GET", "/state.json")[0] == 200 and thread.is_alive()
+            assert b"200" not in reply[:20], reply[:300]
+        status, body = _http(port, "GET", token + "/state.json")
+        assert status == 200 and json.loads(body)["agentdress_node/tshirt"]["faces"] == 1
+        assert _http(port, "GET", token + "/")[0] == 200
     finally:
-        server.shutdown()
-        server.server_close()
+        server.stop()
 
 
 # --------------------------------------------------------------------------------------- live nodes over DDS
@@ -566,11 +570,12 @@ def test_viewer_warns_when_it_serves_beyond_this_machine(tmp_path):
     from agentdress_ros.ros.viewer import exposure_warning
 
     assert exposure_warning("127.0.0.1") == exposure_warning("localhost") == exposure_warning("::1") == ""
-    assert "no authentication" in exposure_warning("192.168.1.20") and "no authentication" in exposure_warning("")
-    child = ChildProcess([sys.executable, "-m", "agentdress_ros.ros.viewer", "--host", "0.0.0.0", "--port", "0"],
+    assert "beyond this machine" in exposure_warning("192.168.1.20") and "token" in exposure_warning("")
+    child = ChildProcess([sys.executable, "-m", "agentdress_ros.ros.viewer", "--host", "0.0.0.0", "--port", "0",
+                          "--cert-dir", str(tmp_path / "tls")],
                          ros_env(DOMAIN_ID + 3, str(tmp_path)), tmp_path / "viewer.log")
     try:
-        assert child.wait_for_output("open http://", 60.0), child.output()
-        assert "no authentication" in child.output()
+        assert child.wait_for_output("open https://", 60.0), child.output()
+        assert "beyond this machine" in child.output()
     finally:
         assert child.stop() == 0, child.output()

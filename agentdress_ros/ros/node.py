@@ -180,7 +180,8 @@ class AgentDressNode(Node):
                                      config["engine"]) for g in config["garments"])
         if beta is None:
             beta = check_shape_values(config["shape"]).beta
-        return SceneSpec(garments, config["publish_body"], tuple(float(b) for b in beta), config["skinned_fallback"])
+        return SceneSpec(garments, config["publish_body"], tuple(float(b) for b in beta), config["skinned_fallback"],
+                         config["display_subdivision"], tuple(config["garment_layers"].items()))
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """Validate a `ros2 param set` (all parameters of one request together); reject with the reason."""

@@ -34,7 +34,7 @@ def node_command(params_file: Path, databases: dict, extra=()) -> list[str]:
 def run_main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="agentdress run", description=__doc__)
     parser.add_argument("--motion", default="walk", help="procedural motion or CMU .bvh clip for the demo")
-    parser.add_argument("--port", type=int, default=8765, help="viewer HTTP port")
+    parser.add_argument("--port", type=int, default=8765, help="viewer HTTPS port")
     parser.add_argument("--shape-sweep", type=float, default=20.0, help="shape sweep period in s (0: off)")
     parser.add_argument("--config", default=str(ROOT / "config" / "agentdress.yaml"), help="node parameter file")
     parser.add_argument("--data", default=str(DATA), help="folder of the <garment>_default.h5 databases to use")
@@ -66,8 +66,8 @@ def run_main(argv=None) -> int:
         for name, cmd in commands.items():
             # Own process groups: Ctrl-C reaches them once, through us, in a defined order.
             procs[name] = subprocess.Popen(cmd, env=env, start_new_session=True)
-        print(f"agentdress run: open http://127.0.0.1:{args.port}/ in a browser (Ctrl-C stops node, demo and viewer)",
-              flush=True)
+        print("agentdress run: the viewer prints the URL to open (with its access token); Ctrl-C stops node, demo "
+              "and viewer", flush=True)
         while True:
             if os.getppid() != parent:  # whoever started us (make, a shell) is gone: do not leave orphans
                 raise StopIteration

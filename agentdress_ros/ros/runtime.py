@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..body import REFERENCE_SHAPE
+from ..display.models import dress_for_display
 from .garment_models import GarmentDatabaseError, make_body_model, make_garment_model
 
 __all__ = ["GarmentSpec", "ModelSet", "ModelWorker", "OutputGuard", "TickStats", "build_model_set", "inherit_topology",
@@ -34,12 +35,16 @@ class GarmentSpec:
 
 @dataclass(frozen=True)
 class SceneSpec:
-    """Everything the scene requires: garments (in publishing order), the body stream, the shape."""
+    """Everything the scene requires: garments (in publishing order), the body stream, the shape, and how it is
+    dressed for display (agentdress_ros.display.models): Loop subdivision rounds, layer overrides ((garment, layer),
+    ...; template layers otherwise), the body's covered faces left out."""
 
     garments: tuple[GarmentSpec, ...]
     publish_body: bool
     beta: tuple[float, ...]
     skinned_fallback: bool = False
+    display_subdivision: int = 0
+    layers: tuple = ()
 
 
 @dataclass
@@ -80,7 +85,9 @@ def build_model_set(scene: SceneSpec, body, previous: ModelSet | None = None) ->
     beta = np.asarray(scene.beta, dtype=np.float64)
     models, specs, warnings, clamped = {}, {}, [], False
     same_shape = previous is not None and previous.scene.beta == scene.beta
-    wanted = list(scene.garments) + ([GarmentSpec("body")] if scene.publish_body else [])
+    # the body's spec names the garments that cover it: its topology changes with them
+    covering = GarmentSpec("body", engine=(("covered_by", tuple(g.name for g in scene.garments)),))
+    wanted = list(scene.garments) + ([covering] if scene.publish_body else [])
     for spec in wanted:
         old = previous.models.get(spec.name) if previous is not None else None
         if old is not None and previous.specs.get(spec.name) == spec:
@@ -96,6 +103,7 @@ def build_model_set(scene: SceneSpec, body, previous: ModelSet | None = None) ->
         models[spec.name], specs[spec.name] = model, spec
     if not models:
         clamped = bool(np.any((beta < 0) | (beta > 1)))
+    models = dress_for_display(models, body, dict(scene.layers), scene.display_subdivision)
     generation = previous.generation + 1 if previous is not None else 0
     return ModelSet(scene, models, specs, clamped, warnings, generation)
 

@@ -1,0 +1,175 @@
+"""What the node publishes for display, on top of its garment models (ROS-free): no skin through the cloth, garments
+layered, a smooth mesh.
+
+`dress_for_display(models, body, layers, subdivision)` takes the node's models ({name: GarmentModel}, "body"
+included when it is published) and returns them ready for display, inner layers first:
+- the body without the faces its garments cover (agentdress_ros.garment.coverage), the band it keeps under their
+  edges sunk under the cloth (at rest, so it costs nothing per frame);
+- each garment pushed out of the garment of the next lower layer (agentdress_ros.engine.layering), through a
+  binding made once at the reference shape (vertex ids stay valid for every shape: both garments follow the body);
+- each garment refined by `subdivision` rounds of Loop subdivision (agentdress_ros.engine.subdivision), applied
+  last, after the engine's penetration handling and the layering.
+Coverage, layer bindings and subdivision matrices are cached per topology: a shape change reuses them.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..body import REFERENCE_SHAPE
+from ..engine.layering import bind_layers, push_out_of_inner
+from ..engine.subdivision import LoopSubdivision
+from ..garment.binding import vertex_normals
+from ..garment.coverage import MARGIN, cover_depth, faces_with_vertices, tuck_depth
+from ..ros.garment_models import BodyModel
+
+__all__ = ["TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "dress_for_display", "garment_rest"]
+
+#: Layer of each template, inside out: trousers under a shirt worn outside them. A higher layer is pushed out of
+#: the next lower one; equal layers are not layered. Tucked in: give the trousers a layer above the shirt's.
+TEMPLATE_LAYERS = {"trousers": 1, "tshirt": 2, "longsleeve": 2}
+_CACHE: dict = {}
+_CACHE_SIZE = 32
+
+
+def _cached(key, make):
+    if key not in _CACHE:
+        if len(_CACHE) >= _CACHE_SIZE:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = make()
+    return _CACHE[key]
+
+
+def _base(model):
+    return model.base if isinstance(model, DisplayModel) else model
+
+
+def _topology_key(model) -> tuple:
+    base = _base(model)
+    return (base.name, base.kind, base.n_vertices, str(getattr(base, "path", "")), hash(base.faces.tobytes()))
+
+
+def garment_rest(model, body) -> np.ndarray:
+    """The garment (V, 3) of a model at rest on the reference shape: a database's skinning rest, or the template
+    fitted by its binding."""
+    base = _base(model)
+    engine = getattr(base, "engine", None)
+    if engine is not None:
+        rest = np.empty(engine.db.rest.shape, dtype=np.float64)
+        rest[engine.order] = engine.db.rest  # the engine stores vertices sorted by region; output order here
+        return rest
+    return base.garment.rest_vertices(body, body.shape(REFERENCE_SHAPE))
+
+
+class CoveredBodyModel(BodyModel):
+    """The body without the faces garments cover; the band kept under their edges sinks `sink` (hm08 (N,) metres)
+    along the rest normals of each shape."""
+
+    def __init__(self, body, beta, keep_faces: np.ndarray, sink: np.ndarray, covered_by: tuple):
+        self.sink, self.covered_by = sink, covered_by
+        super().__init__(body, beta)
+        self.faces = np.ascontiguousarray(self.faces[keep_faces])
+
+    def _rest_for(self, shape):
+        normals = vertex_normals(shape.vertices, self.body.body_faces)
+        return (shape.vertices - self.sink[:, None] * normals)[self.body_ids]
+
+
+def _coverage(model, body):
+    """(hidden body faces (F,) bool over body.body_faces, sink (N,)) of one garment model (cached)."""
+
+    def make():
+        shape = body.shape(REFERENCE_SHAPE)
+        depth = cover_depth(shape.vertices, body.body_faces, garment_rest(model, body), _base(model).faces)
+        return faces_with_vertices(body.body_faces, depth >= MARGIN), tuck_depth(depth)
+
+    return _cached(("coverage",) + _topology_key(model), make)
+
+
+class DisplayModel:
+    """A garment model under the same protocol, its output pushed out of an inner garment and refined for display.
+
+    `coarse` is the last output before refinement (what an outer layer is pushed out of)."""
+
+    def __init__(self, base, subdivision: LoopSubdivision | None = None, inner=None, binding=None):
+        self.base, self.subdivision, self.inner, self.binding = base, subdivision, inner, binding
+        self.name, self.kind = base.name, base.kind
+        self.faces = subdivision.faces if subdivision is not None else base.faces
+        self.coarse = None
+        self.layer_ms = self.refine_ms = 0.0  # cost of the last frame's layering and refinement
+        self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
+        self._normals = None
+
+    def __getattr__(self, name):  # engine, path, garment, shape_limits, ... of the wrapped model
+        if name == "base":
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+    @property
+    def n_vertices(self) -> int:
+        return self.subdivision.n_vertices if self.subdivision is not None else self.base.n_vertices
+
+    def set_shape(self, beta) -> bool:
+        return self.base.set_shape(beta)
+
+    def reset(self) -> None:
+        self.base.reset()
+
+    def clone(self):
+        return DisplayModel(self.base.clone(), self.subdivision)  # rewired by dress_for_display
+
+    def synthesize(self, rotvecs, root_translation) -> np.ndarray:
+        coarse = self.base.synthesize(rotvecs, root_translation)
+        start = time.perf_counter()
+        inner = self.inner.coarse if self.inner is not None else None
+        if inner is not None and self.binding is not None and len(self.binding):
+            np.copyto(self._pushed, coarse)
+            coarse = self._pushed
+            if self._normals is None or len(self._normals) != len(inner):
+                self._normals = np.empty((len(inner), 3), dtype=np.float32)
+            push_out_of_inner(coarse, inner, self.inner.base.faces, self.binding, normals=self._normals)
+        middle = time.perf_counter()
+        self.coarse = coarse
+        out = self.subdivision.apply(coarse) if self.subdivision is not None else coarse
+        self.layer_ms, self.refine_ms = 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle)
+        return out
+
+
+def dress_for_display(models: dict, body, layers: dict | None = None, subdivision: int = 0) -> dict:
+    """The node's models {name: model} ready for display (see the module docstring), ordered inner layers first and
+    the body last. layers: {garment: layer} overriding TEMPLATE_LAYERS; subdivision: 0, 1 or 2 rounds."""
+    layer_of = dict(TEMPLATE_LAYERS, **(layers or {}))
+    garments = {n: _base(m) for n, m in models.items() if n != "body"}
+    order = sorted(garments, key=lambda n: layer_of.get(n, 0))  # stable: equal layers keep their order
+    layered = len({layer_of.get(n, 0) for n in order}) > 1  # every garment then keeps its `coarse` output
+    out = {}
+    for position, name in enumerate(order):
+        base = garments[name]
+        refine = None
+        if subdivision:
+            refine = _cached(("loop", subdivision) + _topology_key(base),
+                             lambda: LoopSubdivision(base.faces, base.n_vertices, subdivision))
+        inner = next((out[n] for n in reversed(order[:position]) if layer_of.get(n, 0) < layer_of.get(name, 0)),
+                     None)
+        binding = None
+        if inner is not None:
+            binding = _cached(("layer",) + _topology_key(base) + _topology_key(inner), lambda: bind_layers(
+                garment_rest(base, body), garment_rest(inner, body), inner.base.faces))
+        out[name] = DisplayModel(base, refine, inner, binding) if refine is not None or layered else base
+    if "body" in models:
+        out["body"] = _covered_body(models["body"], garments, body)
+    return out
+
+
+def _covered_body(model, garments: dict, body):
+    key = tuple(sorted(_topology_key(g) for g in garments.values()))
+    if getattr(model, "covered_by", None) == key:
+        return model
+    hidden = np.zeros(len(body.body_faces), dtype=bool)
+    sink = np.zeros(len(body.assets.template))
+    for garment in garments.values():
+        faces, depth = _coverage(garment, body)
+        hidden |= faces
+        sink = np.maximum(sink, depth)
+    return CoveredBodyModel(body, model.shape.beta, ~hidden, sink, key)

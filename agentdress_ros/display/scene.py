@@ -1,0 +1,144 @@
+"""What a display client is shown: every mesh (agent, garment) with its topology and latest vertices, and the
+nodes' status; thread-safe (the ROS thread writes, the server's event loop reads) and ROS-free.
+
+Binary messages for the client (web/src/frames.js reads them): uint32 little-endian header length H, H bytes of
+JSON padded with spaces to a multiple of 4, then the payload.
+  mesh:  {"type": "mesh", "key", "agent", "garment", "color", "faces": F, "vertices": V}; F*3 uint32, V*3 float32
+  frame: {"type": "frame", "seq", "meshes": [{"key", "vertices": V, "offset"}]}; each mesh's V*3 float32 at offset
+"""
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+
+__all__ = ["COLORS", "DisplayScene", "mesh_key", "pack"]
+
+COLORS = {"body": [0.85, 0.66, 0.55], "tshirt": [0.2, 0.42, 0.85], "longsleeve": [0.2, 0.65, 0.45],
+          "trousers": [0.3, 0.3, 0.38]}
+OTHER_COLOR = [0.6, 0.6, 0.6]
+
+
+def mesh_key(agent: str, garment: str) -> str:
+    return f"{agent}/{garment}"
+
+
+def pack(header: dict, *blobs: bytes) -> bytes:
+    """One binary message: length-prefixed JSON header padded to 4 bytes, then the blobs."""
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)  # keeps the float32 payload 4-byte aligned for the browser's Float32Array
+    return len(text).to_bytes(4, "little") + text + b"".join(blobs)
+
+
+class _Mesh:
+    __slots__ = ("agent", "garment", "faces", "vertices", "frames", "generation", "stamp")
+
+    def __init__(self, agent, garment, faces, vertices, generation):
+        self.agent, self.garment, self.faces, self.vertices = agent, garment, faces, vertices
+        self.frames, self.generation, self.stamp = 0, generation, None
+
+
+class DisplayScene:
+    """Meshes keyed "agent/garment". `set_mesh` (topology + vertices) and `set_vertices` (a frame) come from the
+    ROS side; listeners (callables, e.g. an event loop's wake-up) are called after every change."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._meshes: dict[str, _Mesh] = {}
+        self._status: dict[str, tuple[int, dict]] = {}  # source -> (version, status)
+        self._generation = 0
+        self.seq = 0
+        self._listeners: list = []
+
+    # ---- writers (any thread) ------------------------------------------------------------------------------------
+    def add_listener(self, callback):
+        with self._lock:
+            self._listeners.append(callback)
+
+    def remove_listener(self, callback):
+        with self._lock:
+            if callback in self._listeners:
+                self._listeners.remove(callback)
+
+    def _changed(self):
+        for callback in list(self._listeners):
+            callback()
+
+    def set_mesh(self, agent: str, garment: str, vertices, faces):
+        """A (new) topology faces (F, 3) with its vertices (V, 3) for mesh agent/garment."""
+        faces = np.ascontiguousarray(faces, dtype="<u4")
+        vertices = np.ascontiguousarray(vertices, dtype="<f4").reshape(-1, 3)
+        with self._lock:
+            self._generation += 1
+            self._meshes[mesh_key(agent, garment)] = _Mesh(agent, garment, faces, vertices, self._generation)
+            self.seq += 1
+        self._changed()
+
+    def set_vertices(self, agent: str, garment: str, vertices, stamp: float | None = None) -> bool:
+        """A frame (V, 3) of a known mesh; held back (False) when it does not fit the topology (a garment rebuilt
+        at another vertex count whose new mesh has not arrived yet)."""
+        vertices = np.ascontiguousarray(vertices, dtype="<f4").reshape(-1, 3)
+        with self._lock:
+            mesh = self._meshes.get(mesh_key(agent, garment))
+            if mesh is None or len(vertices) != len(mesh.vertices):
+                return False
+            mesh.vertices, mesh.stamp = vertices, stamp
+            mesh.frames += 1
+            self.seq += 1
+        self._changed()
+        return True
+
+    def remove_agent(self, agent: str):
+        with self._lock:
+            for key in [k for k, m in self._meshes.items() if m.agent == agent]:
+                del self._meshes[key]
+            self.seq += 1
+        self._changed()
+
+    def set_status(self, source: str, status: dict):
+        with self._lock:
+            version = self._status.get(source, (0, None))[0] + 1
+            self._status[source] = (version, status)
+        self._changed()
+
+    # ---- readers -------------------------------------------------------------------------------------------------
+    def summary(self) -> dict:
+        """{key: {"agent", "garment", "vertices", "faces", "frames", "stamp"}} (tests, status lines)."""
+        with self._lock:
+            return {k: {"agent": m.agent, "garment": m.garment, "vertices": len(m.vertices), "faces": len(m.faces),
+                        "frames": m.frames, "stamp": m.stamp} for k, m in sorted(self._meshes.items())}
+
+    def updates(self, seen: dict) -> tuple[list[bytes], list[str], bytes | None, list[dict]]:
+        """What a client that has seen `seen` still lacks: (mesh messages, removed keys, one frame message or None,
+        status messages). `seen` (the client's own dict) is updated in place."""
+        topology = seen.setdefault("topology", {})
+        frames = seen.setdefault("frames", {})
+        status_seen = seen.setdefault("status", {})
+        meshes, frame_parts, frame_meshes, statuses = [], [], [], []
+        with self._lock:
+            removed = [k for k in topology if k not in self._meshes]
+            for key in removed:
+                del topology[key]
+                frames.pop(key, None)
+            offset = 0
+            for key, mesh in self._meshes.items():
+                if topology.get(key) != mesh.generation:
+                    topology[key], frames[key] = mesh.generation, mesh.frames
+                    header = {"type": "mesh", "key": key, "agent": mesh.agent, "garment": mesh.garment,
+                              "color": COLORS.get(mesh.garment, OTHER_COLOR), "faces": len(mesh.faces),
+                              "vertices": len(mesh.vertices)}
+                    meshes.append(pack(header, mesh.faces.tobytes(), mesh.vertices.tobytes()))
+                elif frames.get(key) != mesh.frames:
+                    frames[key] = mesh.frames
+                    blob = mesh.vertices.tobytes()
+                    frame_meshes.append({"key": key, "vertices": len(mesh.vertices), "offset": offset})
+                    frame_parts.append(blob)
+                    offset += len(blob)
+            for source, (version, status) in self._status.items():
+                if status_seen.get(source) != version:
+                    status_seen[source] = version
+                    statuses.append({"type": "status", "source": source, "status": status})
+            seq = self.seq
+        frame = pack({"type": "frame", "seq": seq, "meshes": frame_meshes}, *frame_parts) if frame_meshes else None
+        return meshes, removed, frame, statuses

@@ -1,0 +1,122 @@
+"""`python -m agentdress_ros.evaluate.display_check`: what the display shows, measured geometrically (JSON on stdout).
+
+The models are those the node runs for `make run` (T-shirt and trousers from the shipped databases, the body
+published), over the demo walk at 30 fps and a shape sweep (the demo's --shape-sweep shapes), for each display
+refinement asked:
+- skin through the cloth: drawn body faces whose centre lies outside a garment where it covers the body (the
+  closest cloth point at least `edge_band` inside the garment's open edges), with the covered faces left out and
+  the kept band sunk (as published), and with every body face drawn (before);
+- layering: the share of T-shirt vertices inside the trousers where the trousers cover them, with and without the
+  push out of the trousers;
+- cost per frame (median, one thread): the engine's synthesis, the layering push, the refinement.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _models(body, databases: dict, subdivision: int, layered: bool):
+    from ..ros.runtime import GarmentSpec, SceneSpec, build_model_set
+
+    garments = tuple(GarmentSpec(g, None, str(p), (("pose_model", "examples"),)) for g, p in databases.items())
+    layers = () if layered else tuple((g, 1) for g in databases)  # equal layers: no push
+    scene = SceneSpec(garments, True, (0.5, 2 / 3, 0.5, 0.5, 0.5, 0.5), False, subdivision, layers)
+    return build_model_set(scene, body)
+
+
+def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0, 15.0), edge_band: float = 0.03,
+          data=ROOT / "data") -> dict:
+    from dataclasses import replace
+
+    from ..body import AnnyBody
+    from ..garment.coverage import poke_through, surface_side
+    from ..ros.demo import load_clip, sweep_shape
+    from ..ros.garment_models import BodyModel
+    from ..ros.runtime import build_model_set
+
+    body = AnnyBody()
+    databases = {g: Path(data, f"{g}_default.h5") for g in ("trousers", "tshirt")}
+    motion = load_clip("walk", 30.0)
+    frames = range(0, len(motion.rotvecs), frames_step)
+    shapes = [tuple(float(b) for b in sweep_shape(t, 20.0)) for t in sweep_times]
+    report = {"frames_per_shape": len(frames), "shapes": shapes, "edge_band_m": edge_band, "runs": {}}
+    for subdivision in subdivisions:
+        for layered in (True, False):
+            model_set = _models(body, databases, subdivision, layered)
+            plain = BodyModel(body)  # before: every face drawn, nothing sunk
+            every_face = plain.faces
+            counts = {"drawn_poking": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0}
+            timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}
+            for beta in shapes:
+                model_set = build_model_set(replace(model_set.scene, beta=beta), body, model_set)
+                plain.set_shape(beta)
+                models = model_set.models
+                for model in models.values():
+                    model.reset()
+                for f in frames:
+                    rotvecs, root = motion.rotvecs[f], motion.root_translation[f]
+                    out = {}
+                    for name, model in models.items():
+                        start = time.perf_counter()
+                        out[name] = np.array(model.synthesize(rotvecs, root), dtype=np.float64)
+                        total = 1e3 * (time.perf_counter() - start)
+                        if name != "body":
+                            timing["layer_ms"].append(getattr(model, "layer_ms", 0.0))
+                            timing["refine_ms"].append(getattr(model, "refine_ms", 0.0))
+                            timing["engine_ms"].append(total - timing["layer_ms"][-1] - timing["refine_ms"][-1])
+                    skin = out["body"]
+                    plain_skin = np.array(plain.synthesize(rotvecs, root), dtype=np.float64) if layered else None
+                    drawn = models["body"].faces
+                    for name in ("tshirt", "trousers"):
+                        garment, faces = out[name], models[name].faces
+                        counts["drawn_poking"] += int(poke_through(skin, drawn, garment, faces,
+                                                                   edge_band=edge_band).sum())
+                        if layered:
+                            counts["poking_all_faces"] += int(poke_through(plain_skin, every_face, garment, faces,
+                                                                           edge_band=edge_band).sum())
+                    shirt = np.array(models["tshirt"].coarse, dtype=np.float64)
+                    trousers = np.array(models["trousers"].coarse, dtype=np.float64)
+                    inside = surface_side(shirt, trousers, models["trousers"].base.faces, edge_band=0.01) < 0
+                    counts["outer_inside_inner"] += int(inside.sum())
+                    counts["outer_vertices"] += len(shirt)
+            n = len(frames) * len(shapes)
+            report["runs"][f"subdivision={subdivision},layered={layered}"] = {
+                "frames": n,
+                "drawn_body_faces_poking_per_frame": counts["drawn_poking"] / n,
+                "all_body_faces_poking_per_frame": counts["poking_all_faces"] / n if layered else None,
+                "tshirt_vertices_inside_trousers_pct": 100.0 * counts["outer_inside_inner"] / counts["outer_vertices"],
+                "garment_vertices": {g: models[g].n_vertices for g in ("tshirt", "trousers")},
+                "body_faces_drawn": len(models["body"].faces), "body_faces": len(every_face),
+                "ms_per_garment_frame_p50": {k: float(np.median(v)) for k, v in timing.items()},
+            }
+    return report
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="display_check", description=__doc__)
+    parser.add_argument("--subdivision", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--step", type=int, default=2, help="every n-th frame of the 30 fps walk")
+    parser.add_argument("--out", default=None, help="also write the JSON here")
+    args = parser.parse_args(argv)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        report = check(tuple(args.subdivision), args.step)
+    text = json.dumps(report, indent=1)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,12 @@
+// Wire format of the binary WebSocket messages (agentdress_ros/display/scene.py writes them):
+//   uint32 little-endian header length H, H bytes of JSON (space-padded to a multiple of 4), then the payload.
+//   header {type: "mesh", key, agent, garment, color, faces: F, vertices: V}: payload F*3 uint32 + V*3 float32
+//   header {type: "frame", seq, meshes: [{key, vertices: V, offset}]}: payload of float32 vertices, each mesh's
+//   block at its byte offset (4-byte aligned, so it is read in place as a Float32Array)
+const decoder = new TextDecoder();
+
+export function decodeMessage(buffer) {
+  const length = new DataView(buffer).getUint32(0, true);
+  const header = JSON.parse(decoder.decode(new Uint8Array(buffer, 4, length)));
+  return { header, payloadOffset: 4 + length };
+}

@@ -1,0 +1,187 @@
+// The immersive display client: every agent and garment the node(s) publish, drawn with three.js, in WebXR on a
+// headset. Frames arrive over a WebSocket (see frames.js for the wire format); the page's own URL carries the
+// access token as its first path segment, so every relative URL (modules, the socket) carries it too.
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { VRButton } from 'three/addons/webxr/VRButton.js';
+import { Panel } from './panel.js';
+
+const stats = {
+  renderer: null, three: THREE.REVISION, connected: false, renderFrames: 0, xrFrames: 0, framesReceived: 0,
+  fps: {}, meshes: {}, startedAt: performance.now(),
+};
+window.agentdress = stats; // read by the tests and handy in the console
+// a mesh's current vertices (V * 3 numbers, the node's Z-up metres) and the nodes' status, for tests and scripts
+stats.positions = (key) => Array.from(meshes.get(key)?.mesh.geometry.attributes.position.array || []);
+stats.status = () => Object.fromEntries(panel.status);
+
+// A software rasteriser (SwiftShader, llvmpipe: no GPU) draws without multisampling at one pixel per CSS pixel.
+const software = (() => {
+  const gl = document.createElement('canvas').getContext('webgl2') || document.createElement('canvas').getContext('webgl');
+  const debug = gl && gl.getExtension('WEBGL_debug_renderer_info');
+  const name = gl ? String(gl.getParameter(debug ? debug.UNMASKED_RENDERER_WEBGL : gl.RENDERER)) : '';
+  gl?.getExtension('WEBGL_lose_context')?.loseContext();
+  return /swiftshader|llvmpipe|software/i.test(name);
+})();
+const renderer = new THREE.WebGLRenderer({ antialias: !software });
+renderer.setPixelRatio(software ? 1 : window.devicePixelRatio);
+renderer.setSize(window.innerWidth, window.innerHeight);
+renderer.xr.enabled = true;
+renderer.xr.setReferenceSpaceType('local-floor');
+document.body.appendChild(renderer.domElement);
+stats.renderer = renderer.isWebGLRenderer ? 'WebGLRenderer' : String(renderer.constructor.name);
+stats.software = software;
+stats.webgl = renderer.capabilities.isWebGL2 ? 'webgl2' : 'webgl';
+const vrButton = VRButton.createButton(renderer);
+vrButton.id = 'vr-button';
+document.body.appendChild(vrButton);
+
+const scene = new THREE.Scene();
+scene.background = new THREE.Color(0x20242a);
+scene.add(new THREE.HemisphereLight(0xf2f4ff, 0x3a3530, 1.6));
+const sun = new THREE.DirectionalLight(0xffffff, 1.8);
+sun.position.set(2, 4, 3);
+scene.add(sun);
+const floor = new THREE.Mesh(new THREE.CircleGeometry(12, 64),
+  new THREE.MeshStandardMaterial({ color: 0x3b4048, roughness: 0.95 }));
+floor.rotation.x = -Math.PI / 2;
+scene.add(floor);
+const grid = new THREE.GridHelper(24, 48, 0x59606b, 0x4a5059);
+grid.position.y = 0.001;
+scene.add(grid);
+
+// The node's world is Z up (ROS REP-103); three.js is Y up: one rotation for everything received.
+const world = new THREE.Group();
+world.rotation.x = -Math.PI / 2;
+scene.add(world);
+
+const camera = new THREE.PerspectiveCamera(45, window.innerWidth / window.innerHeight, 0.05, 200);
+camera.position.set(0, 1.3, 3.6);
+const controls = new OrbitControls(camera, renderer.domElement);
+controls.target.set(0, 0.95, 0);
+controls.update();
+let framed = false;
+
+renderer.xr.addEventListener('sessionstart', () => { world.position.set(0, 0, -1.6); });
+renderer.xr.addEventListener('sessionend', () => { world.position.set(0, 0, 0); });
+
+const meshes = new Map(); // key "agent/garment" -> {mesh, agent, garment, dirty}
+const panel = new Panel(document.getElementById('panel'), (agent, values) => send({ type: 'shape', agent, values }));
+
+function setMesh(header, faces, vertices) {
+  const old = meshes.get(header.key);
+  if (old) { world.remove(old.mesh); old.mesh.geometry.dispose(); old.mesh.material.dispose(); }
+  const geometry = new THREE.BufferGeometry();
+  const position = new THREE.BufferAttribute(new Float32Array(vertices), 3);
+  position.setUsage(THREE.DynamicDrawUsage);
+  geometry.setAttribute('position', position);
+  geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(faces), 1));
+  geometry.computeVertexNormals();
+  const color = new THREE.Color().setRGB(...header.color, THREE.SRGBColorSpace);
+  const material = new THREE.MeshLambertMaterial({ // matte cloth and skin, smooth-shaded by vertex normals
+    color,
+    side: header.garment === 'body' ? THREE.FrontSide : THREE.DoubleSide, // open garments show their inside
+    // the body a hair behind the cloth in depth: where skin and cloth meet at a hem the cloth wins
+    polygonOffset: header.garment === 'body', polygonOffsetFactor: 1, polygonOffsetUnits: 1,
+  });
+  const mesh = new THREE.Mesh(geometry, material);
+  mesh.frustumCulled = false; // vertices move every frame: no stale bounding sphere
+  mesh.name = header.key;
+  world.add(mesh);
+  meshes.set(header.key, { mesh, agent: header.agent, garment: header.garment, dirty: false });
+  stats.meshes[header.key] = { vertices: header.vertices, faces: header.faces, frames: 0, color: header.color };
+  panel.addMesh(header);
+}
+
+function setFrame(header, buffer, payloadOffset) {
+  stats.framesReceived += 1;
+  for (const m of header.meshes) {
+    const entry = meshes.get(m.key);
+    if (!entry) continue;
+    const position = entry.mesh.geometry.attributes.position;
+    if (position.count !== m.vertices) continue; // topology changed; its new mesh message is on the way
+    position.array.set(new Float32Array(buffer, payloadOffset + m.offset, m.vertices * 3));
+    position.needsUpdate = true;
+    entry.dirty = true;
+    stats.meshes[m.key].frames += 1;
+  }
+}
+
+const worker = new Worker(new URL('./socket-worker.js', import.meta.url), { type: 'module' });
+function send(message) { worker.postMessage({ kind: 'send', message }); }
+
+worker.onmessage = (event) => {
+  const data = event.data;
+  if (data.kind === 'frame') setFrame(data.header, data.buffer, data.payloadOffset);
+  else if (data.kind === 'mesh') setMesh(data.header, data.faces, data.vertices);
+  else if (data.kind === 'fps') panel.setMeshFps(data.fps);
+  else if (data.kind === 'open') { stats.connected = true; panel.setConnection('live'); }
+  else if (data.kind === 'closed') { stats.connected = false; panel.setConnection('reconnecting'); }
+  else if (data.kind === 'text') {
+    const message = data.message;
+    if (message.type === 'hello') panel.setPhenotypes(message.phenotypes);
+    else if (message.type === 'status') panel.setStatus(message.source, message.status);
+    else if (message.type === 'remove') removeMesh(message.key);
+    else if (message.type === 'error') console.warn('agentdress server:', message.message);
+  }
+};
+
+function connect() {
+  const url = new URL('ws', window.location.href);
+  url.protocol = url.protocol === 'https:' ? 'wss:' : 'ws:';
+  worker.postMessage({ kind: 'connect', url: url.href });
+}
+
+function removeMesh(key) {
+  const entry = meshes.get(key);
+  if (!entry) return;
+  world.remove(entry.mesh);
+  entry.mesh.geometry.dispose();
+  meshes.delete(key);
+  delete stats.meshes[key];
+  panel.removeMesh(key);
+}
+
+function frameCamera() {
+  const box = new THREE.Box3();
+  for (const { mesh } of meshes.values()) box.expandByObject(mesh);
+  if (box.isEmpty()) return;
+  const centre = box.getCenter(new THREE.Vector3());
+  const size = box.getSize(new THREE.Vector3());
+  const distance = Math.max(size.y * 1.6, Math.max(size.x, size.z) * 1.2, 2.5);
+  controls.target.copy(centre);
+  camera.position.set(centre.x + 0.25 * distance, centre.y + 0.15 * distance, centre.z + distance);
+  controls.update();
+  framed = true;
+}
+
+// Without a GPU a frame takes tens of milliseconds to draw: at most 20 a second, so the page stays responsive.
+const minFrameMs = software ? 50 : 0;
+let lastRender = -Infinity;
+
+function render() {
+  const now = performance.now();
+  if (!renderer.xr.isPresenting && now - lastRender < minFrameMs) return;
+  lastRender = now;
+  for (const entry of meshes.values()) {
+    if (entry.dirty) {
+      entry.mesh.geometry.computeVertexNormals(); // smooth shading from this frame's vertices
+      entry.dirty = false;
+    }
+  }
+  if (!framed && meshes.size && stats.framesReceived > 0) frameCamera();
+  stats.renderFrames += 1;
+  if (renderer.xr.isPresenting) stats.xrFrames += 1;
+  stats.fps = panel.update(now);
+  stats.meshFps = panel.meshFps;
+  renderer.render(scene, camera);
+}
+
+window.addEventListener('resize', () => {
+  camera.aspect = window.innerWidth / window.innerHeight;
+  camera.updateProjectionMatrix();
+  renderer.setSize(window.innerWidth, window.innerHeight);
+});
+
+renderer.setAnimationLoop(render);
+connect();

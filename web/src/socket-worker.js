@@ -1,0 +1,57 @@
+// The WebSocket lives in a worker: frames are received, decoded and counted here even while the page's main thread
+// is busy drawing, and handed over without a copy (transferred ArrayBuffers). Messages to the page:
+//   {kind: 'open' | 'closed'}, {kind: 'text', message}, {kind: 'mesh', header, faces, vertices},
+//   {kind: 'frame', header, buffer, payloadOffset}, {kind: 'fps', fps: {mesh key: frames per second received}}
+// and from the page: {kind: 'send', message} (a JSON shape message for the server).
+import { decodeMessage } from './frames.js';
+
+const WINDOW_MS = 2000;
+const arrivals = new Map(); // mesh key -> arrival times (ms) within the window
+let socket = null;
+
+function connect(url) {
+  socket = new WebSocket(url);
+  socket.binaryType = 'arraybuffer';
+  socket.onopen = () => postMessage({ kind: 'open' });
+  socket.onclose = () => {
+    postMessage({ kind: 'closed' });
+    setTimeout(() => connect(url), 1000);
+  };
+  socket.onmessage = (event) => {
+    if (typeof event.data === 'string') {
+      postMessage({ kind: 'text', message: JSON.parse(event.data) });
+      return;
+    }
+    const { header, payloadOffset } = decodeMessage(event.data);
+    if (header.type === 'mesh') {
+      const facesEnd = payloadOffset + header.faces * 12;
+      const faces = event.data.slice(payloadOffset, facesEnd);
+      const vertices = event.data.slice(facesEnd, facesEnd + header.vertices * 12);
+      postMessage({ kind: 'mesh', header, faces, vertices }, [faces, vertices]);
+    } else if (header.type === 'frame') {
+      const now = performance.now();
+      for (const m of header.meshes) {
+        if (!arrivals.has(m.key)) arrivals.set(m.key, []);
+        arrivals.get(m.key).push(now);
+      }
+      postMessage({ kind: 'frame', header, buffer: event.data, payloadOffset }, [event.data]);
+    }
+  };
+}
+
+setInterval(() => {
+  const now = performance.now();
+  const fps = {};
+  for (const [key, times] of arrivals) {
+    while (times.length && times[0] < now - WINDOW_MS) times.shift();
+    fps[key] = times.length / (WINDOW_MS / 1000);
+  }
+  postMessage({ kind: 'fps', fps });
+}, 250);
+
+onmessage = (event) => {
+  if (event.data.kind === 'connect') connect(event.data.url);
+  else if (event.data.kind === 'send' && socket && socket.readyState === WebSocket.OPEN) {
+    socket.send(JSON.stringify(event.data.message));
+  }
+};
