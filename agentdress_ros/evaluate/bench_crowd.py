@@ -36,7 +36,7 @@ VIEWER = (-16.0, 0.0, 1.6, 0.0)  # x, y, z, yaw: at the plaza's edge, looking al
 
 
 def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: float, budget_ms: float,
-             warmup: float, log_dir: Path) -> dict:
+             warmup: float, log_dir: Path, node_nice: int = 0) -> dict:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import String
@@ -52,7 +52,8 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
               "garment_databases": [f"{g}:{p}" for g, p in DATABASES.items()],
               "rate_hz": float(rate_hz), "status_rate_hz": 1.0, "budget_ms": float(budget_ms),
               "lod.enabled": mode == "spread"}
-    node = ChildProcess(node_args(params), env, log_dir / f"node_{mode}_{count}.log")
+    prefix = ["nice", "-n", str(node_nice)] if node_nice else []
+    node = ChildProcess(prefix + node_args(params), env, log_dir / f"node_{mode}_{count}.log")
     demo_args = [sys.executable, "-m", "agentdress_ros.ros.crowd_demo", "--agents", str(count), "--rate",
                  str(pose_rate)]
     demo_args += ["--near"] if mode == "near" else ["--viewer-at", *(str(v) for v in VIEWER)]
@@ -100,7 +101,7 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
                         "ms": t["ms"]}
                  for name, t in crowd["tiers"].items()}
         return {
-            "agents": count, "mode": mode, "seconds": round(wall, 1), "pose_rate_hz": pose_rate, "rate_hz": rate_hz,
+            "agents": count, "mode": mode, "node_nice": node_nice, "seconds": round(wall, 1), "pose_rate_hz": pose_rate, "rate_hz": rate_hz,
             "budget_ms": budget_ms if mode == "spread" else None,
             "tick_ms": status["tick_ms"], "late_ticks": status["late_ticks"] - status0["late_ticks"],
             "tick_rate_hz": status["tick_rate_hz"],
@@ -166,7 +167,8 @@ def _run_cpu(count: int, ticks: int = 60) -> dict:
 
 
 def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near", "spread"),
-                pose_rate: float = 30.0, rate_hz: float = 90.0, budget_ms: float = 8.0, warmup: float = 5.0):
+                pose_rate: float = 30.0, rate_hz: float = 90.0, budget_ms: float = 8.0, warmup: float = 5.0,
+                node_nice: int = 0):
     """Yields one result dict per (mode, N), RSS added per agent against the smallest N of the same mode."""
     log_dir = Path(tempfile.mkdtemp(prefix="agentdress_bench_crowd_"))
     for mode in modes:
@@ -177,7 +179,7 @@ def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near
         base = None
         for count in sorted(counts):
             result = _run_one(int(count), mode, float(seconds), float(pose_rate), float(rate_hz), float(budget_ms),
-                              float(warmup), log_dir)
+                              float(warmup), log_dir, int(node_nice))
             if base is None:
                 base = result
             elif count > base["agents"]:
@@ -197,8 +199,11 @@ def main(argv=None) -> int:
     parser.add_argument("--pose-rate", type=float, default=30.0, help="JointState rate per agent, Hz (default 30)")
     parser.add_argument("--rate", type=float, default=90.0, help="node rate_hz")
     parser.add_argument("--budget-ms", type=float, default=8.0)
+    parser.add_argument("--node-nice", type=int, default=0,
+                        help="run the node under `nice -n N` (negative: ahead of other work on a shared machine)")
     args = parser.parse_args(argv)
-    for result in bench_crowd(args.agents, args.seconds, args.modes, args.pose_rate, args.rate, args.budget_ms):
+    for result in bench_crowd(args.agents, args.seconds, args.modes, args.pose_rate, args.rate, args.budget_ms,
+                              node_nice=args.node_nice):
         print(json.dumps(result), flush=True)
     return 0
 
