@@ -159,7 +159,7 @@ def _open(browser, url: str, xr: bool = False):
     errors = []
     page.on("pageerror", lambda error: errors.append(str(error)))
     page.goto(url)
-    page.wait_for_function("window.agentdress && window.agentdress.framesReceived > 10 && "
+    page.wait_for_function("window.agentdress && window.agentdress.framesReceived > 3 && "
                            "Object.keys(window.agentdress.meshes).length >= 3", timeout=60_000)
     return context, page, errors
 
@@ -217,7 +217,7 @@ def _tshirt_girth(page) -> float:
     """Median over a few frames of the T-shirt's mean horizontal distance from its axis at the waist and belly (30-60 %
     of its height, below the sleeves), metres: it grows with the body's weight whatever the pose of the walk."""
     radii = []
-    for _ in range(15):
+    for _ in range(7):
         xyz = np.array(page.evaluate("agentdress.positions('agentdress_node/tshirt')")).reshape(-1, 3)
         low, high = xyz[:, 2].min(), xyz[:, 2].max()
         band = xyz[(xyz[:, 2] > low + 0.3 * (high - low)) & (xyz[:, 2] < low + 0.6 * (high - low))]

@@ -82,9 +82,12 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                         if layered:
                             counts["poking_all_faces"] += int(poke_through(plain_skin, every_face, garment, faces,
                                                                            edge_band=edge_band).sum())
-                    shirt = np.array(models["tshirt"].coarse, dtype=np.float64)
-                    trousers = np.array(models["trousers"].coarse, dtype=np.float64)
-                    inside = surface_side(shirt, trousers, models["trousers"].base.faces, edge_band=0.01) < 0
+                    coarse = {g: getattr(models[g], "coarse", None) for g in ("tshirt", "trousers")}
+                    shirt = np.array(out["tshirt"] if coarse["tshirt"] is None else coarse["tshirt"], dtype=np.float64)
+                    trousers = np.array(out["trousers"] if coarse["trousers"] is None else coarse["trousers"],
+                                        dtype=np.float64)
+                    inner_faces = getattr(models["trousers"], "base", models["trousers"]).faces
+                    inside = surface_side(shirt, trousers, inner_faces, edge_band=0.01) < 0
                     counts["outer_inside_inner"] += int(inside.sum())
                     counts["outer_vertices"] += len(shirt)
             n = len(frames) * len(shapes)
@@ -104,12 +107,14 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="display_check", description=__doc__)
     parser.add_argument("--subdivision", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--step", type=int, default=2, help="every n-th frame of the 30 fps walk")
+    parser.add_argument("--sweep", type=float, nargs="+", default=[0.0, 5.0, 10.0, 15.0],
+                        help="times (s) of the demo's 20 s shape sweep to take shapes at")
     parser.add_argument("--out", default=None, help="also write the JSON here")
     args = parser.parse_args(argv)
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(1):
-        report = check(tuple(args.subdivision), args.step)
+        report = check(tuple(args.subdivision), args.step, tuple(args.sweep))
     text = json.dumps(report, indent=1)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -93,14 +93,14 @@ function setMesh(header, faces, vertices) {
   panel.addMesh(header);
 }
 
-function setFrame(header, buffer, payloadOffset) {
+function setFrames(frames) {
   stats.framesReceived += 1;
-  for (const m of header.meshes) {
+  for (const m of frames) {
     const entry = meshes.get(m.key);
     if (!entry) continue;
     const position = entry.mesh.geometry.attributes.position;
-    if (position.count !== m.vertices) continue; // topology changed; its new mesh message is on the way
-    position.array.set(new Float32Array(buffer, payloadOffset + m.offset, m.vertices * 3));
+    if (position.count * 12 !== m.vertices.byteLength) continue; // topology changed; its new mesh is on the way
+    position.array.set(new Float32Array(m.vertices));
     position.needsUpdate = true;
     entry.dirty = true;
     stats.meshes[m.key].frames += 1;
@@ -112,7 +112,7 @@ function send(message) { worker.postMessage({ kind: 'send', message }); }
 
 worker.onmessage = (event) => {
   const data = event.data;
-  if (data.kind === 'frame') setFrame(data.header, data.buffer, data.payloadOffset);
+  if (data.kind === 'frames') setFrames(data.meshes);
   else if (data.kind === 'mesh') setMesh(data.header, data.faces, data.vertices);
   else if (data.kind === 'fps') panel.setMeshFps(data.fps);
   else if (data.kind === 'open') { stats.connected = true; panel.setConnection('live'); }
@@ -130,6 +130,7 @@ function connect() {
   const url = new URL('ws', window.location.href);
   url.protocol = url.protocol === 'https:' ? 'wss:' : 'ws:';
   worker.postMessage({ kind: 'connect', url: url.href });
+  worker.postMessage({ kind: 'want' });
 }
 
 function removeMesh(key) {
@@ -175,6 +176,7 @@ function render() {
   stats.fps = panel.update(now);
   stats.meshFps = panel.meshFps;
   renderer.render(scene, camera);
+  worker.postMessage({ kind: 'want' }); // the newest vertices for the next frame
 }
 
 window.addEventListener('resize', () => {

@@ -1,13 +1,24 @@
 // The WebSocket lives in a worker: frames are received, decoded and counted here even while the page's main thread
-// is busy drawing, and handed over without a copy (transferred ArrayBuffers). Messages to the page:
+// is busy drawing. The page pulls: after each drawn frame it asks for the newest vertices of every mesh that changed
+// (older frames in between are counted, not handed over), so a slow page never falls behind. Messages to the page:
 //   {kind: 'open' | 'closed'}, {kind: 'text', message}, {kind: 'mesh', header, faces, vertices},
-//   {kind: 'frame', header, buffer, payloadOffset}, {kind: 'fps', fps: {mesh key: frames per second received}}
-// and from the page: {kind: 'send', message} (a JSON shape message for the server).
+//   {kind: 'frames', meshes: [{key, vertices: ArrayBuffer}]}, {kind: 'fps', fps: {mesh key: frames per second}}
+// and from the page: {kind: 'connect', url}, {kind: 'want'} (ready for frames), {kind: 'send', message}.
 import { decodeMessage } from './frames.js';
 
 const WINDOW_MS = 2000;
 const arrivals = new Map(); // mesh key -> arrival times (ms) within the window
 let socket = null;
+const latest = new Map(); // mesh key -> the newest vertices not yet handed over
+let wanted = false;
+
+function handOver() {
+  if (!wanted || latest.size === 0) return;
+  const meshes = [...latest].map(([key, vertices]) => ({ key, vertices }));
+  latest.clear();
+  wanted = false;
+  postMessage({ kind: 'frames', meshes }, meshes.map((m) => m.vertices));
+}
 
 function connect(url) {
   socket = new WebSocket(url);
@@ -27,14 +38,17 @@ function connect(url) {
       const facesEnd = payloadOffset + header.faces * 12;
       const faces = event.data.slice(payloadOffset, facesEnd);
       const vertices = event.data.slice(facesEnd, facesEnd + header.vertices * 12);
+      latest.delete(header.key); // frames of the old topology are void
       postMessage({ kind: 'mesh', header, faces, vertices }, [faces, vertices]);
     } else if (header.type === 'frame') {
       const now = performance.now();
       for (const m of header.meshes) {
         if (!arrivals.has(m.key)) arrivals.set(m.key, []);
         arrivals.get(m.key).push(now);
+        const start = payloadOffset + m.offset;
+        latest.set(m.key, event.data.slice(start, start + m.vertices * 12));
       }
-      postMessage({ kind: 'frame', header, buffer: event.data, payloadOffset }, [event.data]);
+      handOver();
     }
   };
 }
@@ -51,6 +65,7 @@ setInterval(() => {
 
 onmessage = (event) => {
   if (event.data.kind === 'connect') connect(event.data.url);
+  else if (event.data.kind === 'want') { wanted = true; handOver(); }
   else if (event.data.kind === 'send' && socket && socket.readyState === WebSocket.OPEN) {
     socket.send(JSON.stringify(event.data.message));
   }
