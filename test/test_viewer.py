@@ -12,6 +12,8 @@ Skipped, with the reason, without Chromium (Debian: `apt-get install -y chromium
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import io
 import json
 import os
 import random
@@ -109,7 +111,8 @@ def _wait_for_meshes(url: str, names, children, timeout: float = 90.0) -> dict:
 
 
 def _pixels(page) -> np.ndarray:
-    return np.asarray(Image.open(__import__("io").BytesIO(page.screenshot())).convert("RGB")).astype(np.int16)
+    # a loaded machine draws a software-WebGL frame slowly: generous timeouts
+    return np.asarray(Image.open(io.BytesIO(page.screenshot(timeout=180_000))).convert("RGB")).astype(np.int16)
 
 
 def _garment_pixels(image: np.ndarray) -> tuple[float, float]:
@@ -160,7 +163,7 @@ def _open(browser, url: str, xr: bool = False):
     page.on("pageerror", lambda error: errors.append(str(error)))
     page.goto(url)
     page.wait_for_function("window.agentdress && window.agentdress.framesReceived > 3 && "
-                           "Object.keys(window.agentdress.meshes).length >= 3", timeout=60_000)
+                           "Object.keys(window.agentdress.meshes).length >= 3", timeout=180_000)
     return context, page, errors
 
 
@@ -202,7 +205,7 @@ def test_enter_vr_runs_the_xr_render_loop(scene, browser):
     context, page, errors = _open(browser, url, xr=True)
     try:
         button = page.locator("#vr-button")
-        button.wait_for(state="visible", timeout=20_000)
+        button.wait_for(state="visible", timeout=120_000)
         assert button.inner_text().strip().upper() == "ENTER VR"
         assert page.evaluate("agentdress.xrFrames") == 0
         page.evaluate("document.getElementById('vr-button').click()")  # a user's click (no hit-test wait)
@@ -230,19 +233,19 @@ def test_a_shape_slider_reaches_the_node_and_changes_the_mesh(scene, browser):
     url, _ = scene
     context, page, errors = _open(browser, url)
     try:
-        page.wait_for_function("document.querySelectorAll('#sliders input').length === 6", timeout=20_000)
+        page.wait_for_function("document.querySelectorAll('#sliders input').length === 6", timeout=120_000)
         before = _tshirt_girth(page)
         page.evaluate("""() => { const input = document.querySelector('#sliders input[name=weight]');
                                  input.value = 1.0; input.dispatchEvent(new Event('input')); }""")
         page.wait_for_function("Object.values(agentdress.status()).some(s => s.shape && s.shape[3] > 0.99)",
-                               timeout=30_000)
-        page.wait_for_timeout(500)
+                               timeout=120_000)
+        page.wait_for_timeout(3000)  # the refit on the node's worker, then its frames
         after = _tshirt_girth(page)
         assert after > before + 0.01, f"T-shirt girth {before:.3f} -> {after:.3f} m after weight 0.5 -> 1"
         page.evaluate("""() => { const input = document.querySelector('#sliders input[name=weight]');
                                  input.value = 0.5; input.dispatchEvent(new Event('input')); }""")
         page.wait_for_function("Object.values(agentdress.status()).some(s => s.shape && s.shape[3] < 0.51)",
-                               timeout=30_000)
+                               timeout=120_000)
         assert not errors, errors
     finally:
         context.close()
@@ -262,10 +265,14 @@ def test_nothing_is_served_without_the_token(scene):
         async with websockets.connect(target, ssl=INSECURE, open_timeout=10) as socket:
             return await socket.recv()
 
+    def run(target: str):  # in a thread of its own: Playwright's sync API holds this thread's event loop
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            return pool.submit(asyncio.run, connect(target)).result(timeout=60)
+
     with pytest.raises(InvalidStatus) as refused:
-        asyncio.run(connect(base.replace("https", "wss") + "/ws"))
+        run(base.replace("https", "wss") + "/ws")
     assert refused.value.response.status_code == 403
-    assert json.loads(asyncio.run(connect(url.replace("https", "wss") + "ws")))["type"] == "hello"
+    assert json.loads(run(url.replace("https", "wss") + "ws"))["type"] == "hello"
 
 
 def test_frames_per_second_reaching_the_page(scene, browser):
@@ -306,7 +313,7 @@ def test_make_run_screenshot(browser, tmp_path):
         page.goto(url)
         page.wait_for_function("agentdress.framesReceived > 30", timeout=60_000)
         page.wait_for_timeout(3000)
-        page.screenshot(path=str(folder / "make_run.png"))
+        page.screenshot(path=str(folder / "make_run.png"), timeout=180_000)
         context.close()
     finally:
-        assert run.stop() == 0, run.output()[-3000:]
+        assert run.stop(grace=60.0) == 0, run.output()[-3000:]

@@ -6,7 +6,8 @@ included when it is published) and returns them ready for display, inner layers 
 - the body without the faces its garments cover (agentdress_ros.garment.coverage), the band it keeps under their
   edges sunk under the cloth (at rest, so it costs nothing per frame);
 - each garment pushed out of the garment of the next lower layer (agentdress_ros.engine.layering), through a
-  binding made once at the reference shape (vertex ids stay valid for every shape: both garments follow the body);
+  binding made once, between the two garments as they hang at the rest pose (vertex ids and weights stay valid for
+  every shape and pose: both garments follow the body);
 - each garment refined by `subdivision` rounds of Loop subdivision (agentdress_ros.engine.subdivision), applied
   last, after the engine's penetration handling and the layering.
 Coverage, layer bindings and subdivision matrices are cached per topology: a shape change reuses them.
@@ -60,6 +61,14 @@ def garment_rest(model, body) -> np.ndarray:
         rest[engine.order] = engine.db.rest  # the engine stores vertices sorted by region; output order here
         return rest
     return base.garment.rest_vertices(body, body.shape(REFERENCE_SHAPE))
+
+
+def _draped_rest(model, body) -> np.ndarray:
+    """The garment (V, 3) as the model dresses the rest pose (a database's drape, not its skinning rest: the layers
+    are bound where the cloth actually hangs). Leaves no frame history behind."""
+    out = np.array(model.synthesize(np.zeros((body.n_bones, 3)), np.zeros(3)), dtype=np.float64)
+    model.reset()
+    return out
 
 
 class CoveredBodyModel(BodyModel):
@@ -155,7 +164,7 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
         binding = None
         if inner is not None:
             binding = _cached(("layer",) + _topology_key(base) + _topology_key(inner), lambda: bind_layers(
-                garment_rest(base, body), garment_rest(inner, body), inner.base.faces))
+                _draped_rest(base, body), _draped_rest(inner.base, body), inner.base.faces))
         out[name] = DisplayModel(base, refine, inner, binding) if refine is not None or layered else base
     if "body" in models:
         out["body"] = _covered_body(models["body"], garments, body)
