@@ -61,6 +61,7 @@ def run_main(argv=None) -> int:
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGHUP, stop)
+    signal.signal(signal.SIGINT, stop)  # also when started with SIGINT ignored (a background job of a script)
     parent = os.getppid()
     try:
         for name, cmd in commands.items():
