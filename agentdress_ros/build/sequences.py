@@ -1,7 +1,10 @@
 """Dynamic training sequences: every training clip simulated at beta0, per garment, resumable, on Dask, packed.
 
     agentdress sequences --garment tshirt --clips ../shared/mocap/cmu/*.bvh --out out/sequences [--workers 1]
-    agentdress sequences --garment tshirt --out out/sequences --pack data/tshirt_sequences.npz [--components 96]
+    agentdress sequences --garment tshirt --clips ... --out out/sequences --pack data/tshirt_sequences.npz
+
+With --pack, clips the pack already holds are not simulated again (unless their chunk folder is there), and the
+new pack keeps them beside the clips simulated here: the work of several machines or days adds up in one file.
 
 Each clip runs as one job (`sim.sequence.simulate_sequence`, checkpointed every second of motion) in
 `<out>/<garment>/<clip>/`; a rerun continues every clip after its last complete chunk. Test clips of
@@ -95,12 +98,16 @@ def run_sequences(jobs, workers: int = 1, scheduler: str | None = None, progress
     return results
 
 
-def pack_sequences(root, garment_name: str, garment_vertices: int, out, components: int = 96,
-                   beta=None) -> dict:
+def pack_sequences(root, garment_name: str, garment_vertices: int, out, components: int = 200,
+                   beta=None, inside_every: int = 10) -> dict:
     """Pack every sequence under `root/<garment>/` into one .npz (see the module docstring); returns a report with
-    the pack's size and the PCA reconstruction error in the rest frame (mean and max vertex distance, metres)."""
+    the pack's size, the PCA reconstruction error in the rest frame (mean and max vertex distance, metres), and the
+    garment vertices inside the body on every `inside_every`-th frame (mean per frame: all, in the body's
+    self-overlap, truly inside; garment.inside)."""
     from ..body.model import REFERENCE_SHAPE
     from ..engine.kernels import unpose
+    from ..garment.inside import inside_report
+    from ..sim.posing import posed_surfaces, visible_body
     from ..sim.sequence import load_sequence
     from .jobs import _body_and_garment
 
@@ -108,13 +115,34 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     shape = body.shape(REFERENCE_SHAPE if beta is None else beta)
     rest = garment.rest_vertices(body, shape)
     skin_w = garment.skin_weights.astype(np.float64)
-    folders = sorted(p for p in (Path(root) / garment_name).iterdir() if any(p.glob("chunk_*.npz")))
+    garment_root = Path(root) / garment_name
+    folders = sorted(p for p in garment_root.iterdir() if any(p.glob("chunk_*.npz"))) if garment_root.is_dir() else []
     offsets, poses, roots, velocities, clip_ids, frame_ids, names = [], [], [], [], [], [], []
     cloth_speed, body_speed = [], []
+    out = Path(out)
+    if out.is_file():  # clips packed before (simulated elsewhere or earlier) and not simulated here stay in
+        previous = load_sequence_pack(out)
+        for c, name in enumerate(previous["clips"]):
+            if str(name) in {f.name for f in folders}:
+                continue
+            rows = previous["clip"] == c
+            names.append(str(name))
+            offsets.extend(previous["offsets"][rows].reshape(int(rows.sum()), -1).astype(np.float64))
+            for target, field in ((poses, "rotvecs"), (roots, "root_translation"), (velocities, "root_velocity"),
+                                  (cloth_speed, "cloth_speed"), (body_speed, "body_speed"), (frame_ids, "frame")):
+                target.append(previous[field][rows])
+            clip_ids.append(np.full(int(rows.sum()), len(names) - 1, dtype=np.int16))
     unposed = np.empty_like(rest)
-    for c, folder in enumerate(folders):
+    inside = []
+    for folder in folders:
         data = load_sequence(folder)
         names.append(folder.name)
+        c = len(names) - 1
+        for f in range(0, len(data["frames"]), max(1, inside_every)):
+            bodies, _ = posed_surfaces(body, garment, shape, data["rotvecs"][f:f + 1].astype(np.float64),
+                                       data["root_translation"][f:f + 1].astype(np.float64))
+            counts = inside_report(data["positions"][f], bodies[0], visible_body(body)[1])
+            inside.append([counts["inside_count"], counts["overlap_count"], counts["truly_inside_count"]])
         for positions, rotvecs, root in zip(data["positions"], data["rotvecs"], data["root_translation"]):
             transforms, _ = body.pose(shape, rotvecs.astype(np.float64), root.astype(np.float64))
             unpose(positions.astype(np.float64), garment.skin_indices, skin_w, transforms, unposed)
@@ -136,7 +164,6 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     coefficients16 = (coefficients / scale).astype(np.float16)
     restored = (coefficients16.astype(np.float64) * scale) @ basis + mean
     error = np.linalg.norm((restored - matrix).reshape(len(matrix), -1, 3), axis=2)
-    out = Path(out)
     partial = out.with_name(out.name + ".partial")
     with open(partial, "wb") as handle:
         np.savez_compressed(
@@ -152,9 +179,12 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     out.parent.mkdir(parents=True, exist_ok=True)
     partial.replace(out)
     explained = float((singular[:k] ** 2).sum() / (singular ** 2).sum())
-    return {"pack": str(out), "bytes": out.stat().st_size, "clips": len(folders), "frames": len(matrix),
+    return {"pack": str(out), "bytes": out.stat().st_size, "clips": len(names), "frames": len(matrix),
             "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean()),
             "rest_frame_error_max_m": float(error.max()),
+            "inside_per_frame": dict(zip(("all", "in_self_overlap", "truly_inside"),
+                                         np.mean(inside, axis=0).round(2).tolist())),
+            "inside_frames_tested": len(inside),
             "max_cloth_speed": float(np.concatenate(cloth_speed).max()),
             "max_body_speed": float(np.concatenate(body_speed).max())}
 
@@ -183,11 +213,15 @@ def main(argv=None) -> int:
     parser.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     parser.add_argument("--settings", default="", help="JSON object of SequenceSettings overrides")
     parser.add_argument("--pack", default=None, help="pack the finished sequences into this .npz")
-    parser.add_argument("--components", type=int, default=96, help="PCA components of the pack")
+    parser.add_argument("--components", type=int, default=200, help="PCA components of the pack")
     args = parser.parse_args(argv)
     settings = asdict(SequenceSettings())
     settings.update(json.loads(args.settings) if args.settings else {})
     clips = check_training_clips(args.clips)
+    if args.pack and Path(args.pack).is_file():  # clips in the pack are finished: not simulated again
+        with np.load(args.pack) as data:
+            packed = {str(name) for name in data["clips"]}
+        clips = [c for c in clips if c.stem not in packed or (Path(args.out) / args.garment / c.stem).is_dir()]
     # shortest clips first: the most finished clips early, whatever the time available
     clips.sort(key=lambda p: p.stat().st_size)
     jobs = [SequenceJob(str(c), args.garment, args.vertices, tuple(REFERENCE_SHAPE), str(Path(args.out) /
