@@ -74,8 +74,9 @@ def test_quick_eval_writes_table_json_and_plots(quick_eval):
     assert json.loads((out / "report.json").read_text())["rows"][0]["name"] == BASELINE
     table = (out / "trade.md").read_text().splitlines()
     body = [line for line in table if line.startswith("| ") and not line.startswith("| # |")
-            and not line.startswith("| extreme")]
-    assert len(body) == len(report["rows"]) + len(report["stability"])
+            and not line.startswith("| extreme") and not line.startswith("| configuration")]
+    temporal_rows = sum(len(entry["rows"]) for entry in report["temporal"])
+    assert len(body) == len(report["rows"]) + len(report["stability"]) + temporal_rows
     for name in ("pareto.png", "anchors.png", "shape_distance.png"):
         assert (out / name).stat().st_size > 10_000
 

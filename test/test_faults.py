@@ -371,8 +371,9 @@ def _start(tmp_path_factory, name: str, domain: int, params: dict, faults: dict 
     """A node child process (with `faults` injected, if any) and a Client; stops the node after and checks that
     it exited cleanly."""
     env = ros_env(domain, str(tmp_path_factory.mktemp(f"{name}_log")))
+    # display_subdivision 0: the published topology is the garment's own, whose vertex budget these tests set
     args = node_args({"garment_vertices": [f"tshirt:{VERTICES}"], "status_rate_hz": 5.0, "warn_throttle_s": 0.5,
-                      **params})
+                      "display_subdivision": 0, **params})
     if faults is not None:
         args = [sys.executable, "-c", FAULTY_NODE, json.dumps(faults), *args[3:]]
     child = ChildProcess(args, env, tmp_path_factory.mktemp(name) / "node.log")

@@ -52,7 +52,12 @@ export class Panel {
 
   setMeshFps(fps) { this.meshFps = fps; }
 
-  setStatus(source, status) { this.status.set(source, status); }
+  setStatus(source, status) {
+    this.status.set(source, status);
+    // sliders drawn before the node said its shape start at the node's shape once it does (untouched ones only)
+    const agent = this.select.value;
+    if (agent && !this.slidersFromStatus && !this.values[agent]) this.buildSliders();
+  }
 
   // The node status that speaks for an agent: its own node's, or the crowd node's entry for it.
   statusOf(agent) {
@@ -77,6 +82,7 @@ export class Panel {
     this.sliders.textContent = '';
     if (!agent || !this.phenotypes.length) return;
     const status = this.statusOf(agent);
+    this.slidersFromStatus = Boolean(status && status.shape);
     const values = this.values[agent] || (status && status.shape) || this.phenotypes.map(() => 0.5);
     this.phenotypes.forEach((name, i) => {
       const label = document.createElement('label');
