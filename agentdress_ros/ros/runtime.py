@@ -301,14 +301,8 @@ class TickStats:
         return percentiles(values)
 
 
-def percentiles(values, digits: int = 4) -> dict:
-    """p50, p99, max and count of a sequence of timings (None when empty), rounded for JSON."""
-    if not values:
-        return {"p50": None, "p99": None, "max": None, "n": 0}
-    array = np.fromiter(values, dtype=np.float64)
-    p50, p99 = np.percentile(array, [50, 99])
-    return {"p50": round(float(p50), digits), "p99": round(float(p99), digits),
-            "max": round(float(array.max()), digits), "n": int(array.size)}
+# one percentile summary for the node status, the crowd scene and the benchmarks
+from ..scene.scene import percentiles  # noqa: E402,F401
 
 
 def default_scene(garments=("tshirt",), publish_body=False, beta=REFERENCE_SHAPE) -> SceneSpec:
