@@ -31,6 +31,7 @@ PASSTHROUGH = (
     ("run", ".ros.run_all", "run_main", "node + demo + viewer together (what `make run` starts)"),
     ("eval", ".evaluate.evaluate", "main", "speed vs accuracy against held-out newton drapes (trade table, plots)"),
     ("sequences", ".build.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),
+    ("regressor", ".build.regressor", "main", "train the regressor pose model from a sequence pack into a database"),
 )
 
 

@@ -14,6 +14,7 @@ _EXPORTS = {
     "EngineConfig": ".config",
     "Database": ".database",
     "DatabaseError": ".database",
+    "Regressor": ".database",
     "read_database": ".database",
     "write_database": ".database",
     "PoseModel": ".pose_models",

@@ -34,6 +34,9 @@ class EngineConfig:
         (the distance of a 1 rad difference in every dof), so it is scale free.
     clamp_to_training_range: clamp beta to the database's training range (the shape models extrapolate badly);
         False clamps to Anny's [0, 1] only. Either way ShapeReport.clamped says whether anything was clamped.
+    fold: for a pose model that is not exact at the anchors (the learned `regressor`), add each anchor's residual
+        f(beta0, theta_s) - pose_model(theta_s) to its shape delta, so synthesis stays exact at the anchors (Eq. 4
+        with the taylor="augmented" form only; no cost per frame).
     max_root_translation: |root translation| components are clamped to this (metres) so float32 output stays finite.
     """
 
@@ -54,6 +57,7 @@ class EngineConfig:
     eps_relative: float = 1e-6
     clamp_to_training_range: bool = True
     max_root_translation: float = 1.0e4
+    fold: bool = True
 
     def __post_init__(self):
         if self.taylor not in TAYLOR_MODES:

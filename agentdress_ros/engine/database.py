@@ -33,11 +33,18 @@ at run time. A held-out shape that changes four phenotypes at once is reproduced
 | garment/binding/triangles, .../barycentric, .../offset; attr surface | (V, 3) int32, (V, 3) f64, (V,) f64 | the garment on any body shape: a point of an hm08 triangle (vertex ids) plus an offset along the normal of the `surface` face group; required by the skinned_residual basis |
 | pose_model/examples/poses, .../drapes | (M, B, 3) f32, (M, V, 3) f32 | drapes at beta0 |
 | pose_model/sequence/poses, .../root_translation, .../drapes | (T, B, 3), (T, 3), (T, V, 3) f32; attr fps | a simulated sequence at beta0 |
+| pose_model/regressor/dofs, .../input_mean, .../input_scale | (I,) int32, (I,) f32, (I,) f32 | optional learned pose model (below): input pose dofs (indices into the D = 3B flattened rotation vectors) and their standardisation |
+| pose_model/regressor/layer_NN/weights, .../layer_NN/bias | (H_n, H_n+1) f32, (H_n+1,) f32 | the MLP's layers, NN = 00, 01, ... (H_0 = I, the last = G); attrs activation, layers, info (JSON) |
+| pose_model/regressor/coefficient_mean, .../coefficient_scale, .../mean, .../basis | (G,), (G,) f32, (V, 3), (G, V, 3) f32 | PCA of the rest-frame garment: position = mean + sum_g (y_g scale_g + mean_g) basis_g for the MLP output y |
+
+The regressor (Santesteban et al. 2019, Sec. 3-4) is f(beta0, theta) in the rest frame: the garment unposed with
+beta0's bones (their Eq. 5), reduced by PCA, regressed from the pose by an MLP (hidden layers `activation`, the last
+linear). Trained offline (`agentdress regressor`, build.regressor); evaluated with numpy (engine.pose_models).
 """
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import h5py
@@ -61,6 +68,59 @@ def shape_features(betas, beta0, beta_scale) -> np.ndarray:
 
 class DatabaseError(ValueError):
     """A database file is missing, unreadable or does not follow the schema; the message names file and field."""
+
+
+REGRESSOR_GROUP = "pose_model/regressor"
+REGRESSOR_ACTIVATIONS = ("tanh", "relu")
+MAX_LAYERS = 16
+
+
+@dataclass(frozen=True)
+class Regressor:
+    """The learned pose model's arrays (group pose_model/regressor; shapes in the module docstring)."""
+
+    dofs: np.ndarray  # (I,) int32
+    input_mean: np.ndarray  # (I,) f32
+    input_scale: np.ndarray  # (I,) f32
+    weights: tuple  # of (H_n, H_n+1) f32
+    biases: tuple  # of (H_n+1,) f32
+    coefficient_mean: np.ndarray  # (G,) f32
+    coefficient_scale: np.ndarray  # (G,) f32
+    mean: np.ndarray  # (V, 3) f32 rest-frame garment
+    basis: np.ndarray  # (G, V, 3) f32 unit rows
+    activation: str = "tanh"
+    info: dict = field(default_factory=dict)  # how it was trained and what it scored (JSON); info["key"] identifies it
+
+    def vertex_rows(self, ids) -> "Regressor":
+        """The regressor restricted to (or reordered by) vertex indices `ids`."""
+        return replace(self, mean=self.mean[ids], basis=self.basis[:, ids])
+
+
+def write_regressor(h5, regressor: Regressor) -> None:
+    """Write (or replace) the regressor group in an open, writable HDF5 file."""
+    if REGRESSOR_GROUP in h5:
+        del h5[REGRESSOR_GROUP]
+    group = h5.require_group(REGRESSOR_GROUP)
+    arrays = {"dofs": (regressor.dofs, np.int32), "input_mean": (regressor.input_mean, np.float32),
+              "input_scale": (regressor.input_scale, np.float32),
+              "coefficient_mean": (regressor.coefficient_mean, np.float32),
+              "coefficient_scale": (regressor.coefficient_scale, np.float32),
+              "mean": (regressor.mean, np.float32), "basis": (regressor.basis, np.float32)}
+    for n, (w, b) in enumerate(zip(regressor.weights, regressor.biases)):
+        arrays[f"layer_{n:02d}/weights"] = (w, np.float32)
+        arrays[f"layer_{n:02d}/bias"] = (b, np.float32)
+    for name, (value, dtype) in arrays.items():
+        _create(group, name, np.ascontiguousarray(value, dtype=dtype))
+    group.attrs["activation"] = regressor.activation
+    group.attrs["layers"] = len(regressor.weights)
+    group.attrs["info"] = json.dumps(regressor.info)
+
+
+def _create(parent, name: str, array: np.ndarray) -> None:
+    """A dataset, compressed when it is big."""
+    big = array.size > 4096
+    parent.create_dataset(name, data=array, compression="gzip" if big else None, compression_opts=4 if big else None,
+                          shuffle=big)
 
 
 @dataclass
@@ -94,6 +154,7 @@ class Database:
     sequence_root_translation: np.ndarray | None = None
     sequence_drapes: np.ndarray | None = None
     sequence_fps: float = 30.0
+    regressor: "Regressor | None" = None
     shape_basis: str = "absolute"
     binding_triangles: np.ndarray | None = None
     binding_barycentric: np.ndarray | None = None
@@ -176,10 +237,7 @@ def write_database(path, db: Database) -> Path:
             value = getattr(db, attr)
             if value is None:
                 continue
-            array = np.ascontiguousarray(value, dtype=dtype)
-            big = array.size > 4096
-            h5.create_dataset(name, data=array, compression="gzip" if big else None, compression_opts=4 if big else None,
-                              shuffle=big)
+            _create(h5, name, np.ascontiguousarray(value, dtype=dtype))
         for name, attr, _ in STRING_FIELDS:
             h5.create_dataset(name, data=np.array(getattr(db, attr), dtype=h5py.string_dtype()))
         h5["garment/regions"].attrs["region_names"] = json.dumps(list(db.region_names))
@@ -188,6 +246,8 @@ def write_database(path, db: Database) -> Path:
         h5["anchors"].attrs["shape_basis"] = db.shape_basis
         if db.binding_triangles is not None:
             h5["garment/binding"].attrs["surface"] = db.binding_surface
+        if db.regressor is not None:
+            write_regressor(h5, db.regressor)
     partial.replace(path)
     return path
 
@@ -387,7 +447,50 @@ class _Reader:
                     raise DatabaseError(f"{self.path}: field '{name}' is missing (required by the skinned_residual "
                                         "basis)")
             extras["binding_surface"] = self.text("garment/binding", "surface", allow_empty=False)
+        extras["regressor"] = self.regressor()
         return Database(**values, **extras)
+
+    def regressor(self) -> Regressor | None:
+        """The optional learned pose model's group, checked like every other field (None when absent)."""
+        self.where = f"group '{REGRESSOR_GROUP}'"
+        group = self.h5.get(REGRESSOR_GROUP)
+        if group is None:
+            return None
+        if not isinstance(group, h5py.Group):
+            self.fail("is a dataset, not a group")
+        layers = self.attribute(REGRESSOR_GROUP, "layers")
+        if not (np.ndim(layers) == 0 and np.asarray(layers).dtype.kind in "iu" and 1 <= layers <= MAX_LAYERS):
+            self.fail(f"is {_shown(layers)!r}, expected a layer count in [1, {MAX_LAYERS}]")
+        activation = self.text(REGRESSOR_GROUP, "activation", allow_empty=False)
+        if activation not in REGRESSOR_ACTIVATIONS:
+            self.fail(f"is {activation!r}, expected one of {REGRESSOR_ACTIVATIONS}")
+        info = self.json(REGRESSOR_GROUP, "info", "{}", dict)
+        g = REGRESSOR_GROUP + "/"
+        sizes = ["I"] + [f"H{n + 1}" for n in range(int(layers) - 1)] + ["G"]  # widths: input, hidden..., output
+        fields = [("dofs", np.int32, ("I",), (0, "D")), ("input_mean", np.float32, ("I",), (-1.0e3, 1.0e3)),
+                  ("input_scale", np.float32, ("I",), (1.0e-9, 1.0e3))]
+        for n in range(int(layers)):
+            fields += [(f"layer_{n:02d}/weights", np.float32, (sizes[n], sizes[n + 1]), (-1.0e6, 1.0e6)),
+                       (f"layer_{n:02d}/bias", np.float32, (sizes[n + 1],), (-1.0e6, 1.0e6))]
+        fields += [("coefficient_mean", np.float32, ("G",), (-1.0e6, 1.0e6)),
+                   ("coefficient_scale", np.float32, ("G",), (1.0e-12, 1.0e6)),
+                   ("mean", np.float32, ("V", 3), POINTS), ("basis", np.float32, ("G", "V", 3), (-1.001, 1.001))]
+        values = {}
+        for name, dtype, spec, bounds in fields:
+            array = self.numeric(g + name, dtype, spec)
+            self.check_range(g + name, array, bounds, dtype)
+            values[name] = self.cast(array, dtype)
+        self.where = f"field '{g}dofs'"
+        if len(np.unique(values["dofs"])) != len(values["dofs"]):
+            self.fail("has repeated pose dofs")
+        for name in ("I", "G") + tuple(sizes[1:-1]):  # layer widths belong to this group only
+            self.sizes.pop(name, None)
+        return Regressor(
+            dofs=values["dofs"], input_mean=values["input_mean"], input_scale=values["input_scale"],
+            weights=tuple(values[f"layer_{n:02d}/weights"] for n in range(int(layers))),
+            biases=tuple(values[f"layer_{n:02d}/bias"] for n in range(int(layers))),
+            coefficient_mean=values["coefficient_mean"], coefficient_scale=values["coefficient_scale"],
+            mean=values["mean"], basis=values["basis"], activation=activation, info=info)
 
     def check_relations(self, values: dict):
         """What no single field's range says: sums, orderings, counts that tie fields together."""

@@ -25,7 +25,7 @@ from ..garment.binding import SurfaceBinding, evaluate_surface_binding, vertex_n
 from .config import TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
 from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, region_neighbours,
-                      shape_anchors, synthesize_vertices)
+                      shape_anchors, synthesize_vertices, unpose)
 from .pose_models import PoseModelContext, canonical_poses, make_pose_model
 
 N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-zero regions
@@ -105,6 +105,7 @@ def select_database(db: Database, config: EngineConfig) -> Database:
             pca_components=changes.get("pca_components", db.pca_components)[:, :, ids],
             example_drapes=changes.get("example_drapes", db.example_drapes)[:, ids],
             sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, ids],
+            regressor=None if db.regressor is None else db.regressor.vertex_rows(ids),
             **_binding_rows(db, ids),
         )
     return replace(db, **changes) if changes else db
@@ -115,12 +116,16 @@ def anchor_examples(db: Database, keep) -> np.ndarray:
     the anchor's), in anchor order: an anchor subset restricts the pose model to its own anchors' drapes, as the
     paper builds its pose model at its sample points. Anchors without such an example (synthetic databases) add
     none."""
+    found = [example_of(db, s) for s in np.arange(db.n_anchors)[keep]]
+    return np.asarray([m for m in found if m is not None], dtype=int)
+
+
+def example_of(db: Database, anchor: int) -> int | None:
+    """The index of the pose-model example whose pose is anchor `anchor`'s (its beta0 drape), or None."""
     examples = np.asarray(db.example_poses, dtype=np.float64).reshape(len(db.example_poses), -1)
-    found = []
-    for pose in np.asarray(db.anchor_poses, dtype=np.float64)[keep].reshape(len(keep), -1):
-        same = np.flatnonzero(np.abs(examples - pose).max(axis=1) <= 1e-6)
-        found += same[:1].tolist()
-    return np.asarray(found, dtype=int)
+    pose = np.asarray(db.anchor_poses[anchor], dtype=np.float64).reshape(-1)
+    same = np.flatnonzero(np.abs(examples - pose).max(axis=1) <= 1e-6)
+    return int(same[0]) if len(same) else None
 
 
 def _binding_rows(db: Database, ids) -> dict:
@@ -168,6 +173,7 @@ def permute_vertices(db: Database, order: np.ndarray) -> Database:
         regions=db.regions[order], pca_mean=db.pca_mean[:, order], pca_components=db.pca_components[:, :, order],
         example_drapes=db.example_drapes[:, order],
         sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, order],
+        regressor=None if db.regressor is None else db.regressor.vertex_rows(order),
         **_binding_rows(db, order))
 
 
@@ -255,6 +261,7 @@ class Engine:
             power=float(config.power), decay=bool(config.decay), damping=float(config.damping),
             block_start=self.block_start, block_regions=self.block_regions, region_w=self.region_w)
         self.pose_model = make_pose_model(config.pose_model, context)
+        self._fold = self._anchor_residuals() if config.fold and self.mode == 0 else None
 
         self.pose_model_context = context
         self._allocate_frame_buffers()
@@ -289,6 +296,30 @@ class Engine:
         self._buffers = (rest, rest.copy())  # double buffer: the last good frame survives a bad one
         self._current = 0
         self._skinned = np.empty((v, 3), dtype=self.dtype)
+
+    def _anchor_residuals(self) -> np.ndarray | None:
+        """(N, 3, V) f(beta0, theta_s) - pose_model(theta_s) in the rest frame, per anchor, for a pose model that is
+        not exact at the anchors (`fold_anchor_residuals`): added to each anchor's shape delta, it makes synthesis
+        reproduce f(beta0, theta_s) + the shape term at theta_s, at no cost per frame. f(beta0, theta_s) is the
+        anchor's beta0 drape (its pose-model example), or its shape model at beta0 when the database has none."""
+        if not getattr(self.pose_model, "fold_anchor_residuals", False):
+            return None
+        db = self.db
+        residuals = np.empty((db.n_anchors, 3, self.n_vertices), dtype=self.dtype)
+        unposed = np.empty((self.n_vertices, 3))
+        zero = np.zeros(3)
+        for s, pose in enumerate(self.anchor_poses):
+            example = example_of(db, s)
+            if example is not None:
+                drape = np.asarray(db.example_drapes[example], dtype=np.float64)
+            else:
+                drape = (self._base0[s] if self._residual else 0.0) + db.pca_mean[s] + np.einsum(
+                    "c,cvk->vk", self._phi0[s], db.pca_components[s, : self._phi0.shape[1]])
+            unpose(drape, self.skin_indices, self._skin_weights64, self._anchor_transforms0[s], unposed)
+            model = np.asarray(self.pose_model.evaluate(pose, zero, None), dtype=np.float64)
+            residuals[s] = unposed.T - model
+        self.reset()
+        return residuals
 
     # ---------------------------------------------------------------- shape (rare, off the frame path)
     def _coefficients(self, beta) -> np.ndarray:
@@ -357,6 +388,8 @@ class Engine:
                       self._skin_weights64, self.mode, config.penetration, body_points.astype(np.float64),
                       body_normals.astype(np.float64), config.penetration_margin, deltas, clearances,
                       self._residual, base, self._base0, self._anchor_transforms0)
+        if self._fold is not None:
+            deltas += self._fold
         self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals, rest)
         report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start,
                              model_beta, held_names)

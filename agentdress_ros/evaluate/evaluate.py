@@ -34,11 +34,12 @@ class Row:
     results: dict = field(default_factory=dict)
 
 
-def trade_rows(n_anchors: int, n_components: int) -> list[Row]:
+def trade_rows(n_anchors: int, n_components: int, regressor: bool = False) -> list[Row]:
     """The rows of the trade table (the anchors' K and the examples pose model's K in {1, 3, 5, 8}, components in
     {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep: N
     anchors restrict both the shape models and the pose model's examples to those anchors (their beta0 drapes),
-    the pose model's K staying 5 (capped at N)."""
+    the pose model's K staying 5 (capped at N). With `regressor` (the database has one), the learned pose model
+    alone and in synthesis, with and without its anchor residuals folded into the shape deltas."""
     # sweeps around the node's default (the examples pose model, the most accurate measured)
     base = {"pose_model": "examples"}
     rows = [
@@ -70,6 +71,48 @@ def trade_rows(n_anchors: int, n_components: int) -> list[Row]:
         Row("synthesis, plain Taylor (Eq. 2, deltas not re-posed)", "ablation", {**base, "taylor": "plain"}),
         Row("synthesis, float64", "precision", {**base, "dtype": "float64"}),
     ]
+    if regressor:
+        rows += [
+            Row("regressor pose model alone (beta0 garment, no shape model)", "regressor",
+                {"pose_model": "regressor", "shape_model": False}),
+            Row("synthesis with the regressor pose model (anchor residuals folded into the shape deltas)",
+                "regressor", {"pose_model": "regressor"}),
+            Row("synthesis with the regressor pose model, no fold", "regressor",
+                {"pose_model": "regressor", "fold": False}),
+        ]
+    return rows
+
+
+#: Pose models measured alone against drapes at beta0 (evaluate.beta0), with the rows' configurations.
+BETA0_ROWS = (("lbs pose model alone", {"shape_model": False}),
+              ("examples pose model alone", {"shape_model": False, "pose_model": "examples"}),
+              ("regressor pose model alone", {"shape_model": False, "pose_model": "regressor"}),
+              ("synthesis, examples pose model (node default)", {"pose_model": "examples"}),
+              ("synthesis, regressor pose model (fold)", {"pose_model": "regressor"}))
+
+
+def beta0_report(db, body, poses, drapes) -> list[dict]:
+    """Each pose model alone (and synthesis with it) at beta0 against the beta0 drapes of the held-out poses: mean and
+    p95 error (cm), with a 95 % bootstrap interval over the poses (the same resamples for every row)."""
+    from ..engine import Engine, EngineConfig
+
+    rows, cases = [], []
+    for name, config in BETA0_ROWS:
+        if config.get("pose_model") == "regressor" and db.regressor is None:
+            continue
+        engine = Engine(db, body, EngineConfig(**config))
+        errors = []
+        for pose, truth in zip(poses, drapes):
+            engine.reset()
+            out = np.asarray(engine.synthesize(pose, np.zeros(3)), dtype=np.float64)
+            errors.append(np.linalg.norm(out - truth, axis=1))
+        cases.append([float(e.mean() * 100.0) for e in errors])
+        errors = np.concatenate(errors)
+        rows.append({"name": name, "config": config, "error_mean_cm": float(errors.mean() * 100.0),
+                     "error_p95_cm": float(np.percentile(errors, 95) * 100.0)})
+    intervals, _ = bootstrap_intervals(cases)
+    for row, interval in zip(rows, intervals):
+        row["error_mean_ci_cm"] = interval.tolist()
     return rows
 
 
@@ -270,10 +313,12 @@ def stability_report(db, body, garment) -> list[dict]:
 
 
 def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: int = 2, progress: bool = True,
-             drape: dict | None = None, pack=None, test_set: str = "v1") -> dict:
+             drape: dict | None = None, pack=None, test_set: str = "v1", beta0_pack=None) -> dict:
     """Build (or reuse) the held-out set, measure every row, write report.json, trade.md and the plots.
 
-    pack: file of the held-out ground-truth drapes, read when present and rewritten (see make_held_out_set)."""
+    pack: file of the held-out ground-truth drapes, read when present and rewritten (see make_held_out_set).
+    beta0_pack: file of the held-out poses' drapes at beta0 (evaluate.beta0), for the pose models alone at beta0:
+    read when present, else simulated for a full v1 set (10 drapes) and written."""
     from ..body import AnnyBody
     from ..engine import read_database
     from ..garment import make_garment
@@ -302,7 +347,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     truth_inside = float(np.mean([inside_tests[p][k].fraction(test.drapes[p, k])
                                   for p in range(len(test.poses)) for k in range(len(test.betas))]))
 
-    rows = trade_rows(db.n_anchors, db.n_components)
+    rows = trade_rows(db.n_anchors, db.n_components, regressor=db.regressor is not None)
     repeats = 1 if quick else 3
     from tqdm import tqdm
 
@@ -315,6 +360,13 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
             row.results.update(timing)
         stability = stability_report(db, body, garment)
         temporal = temporal_report(models, [r.name for r in rows], test.dynamic)
+        beta0 = []
+        if beta0_pack is not None and (Path(beta0_pack).is_file() or (test_set == "v1" and not quick)):
+            from .beta0 import held_out_beta0
+
+            drapes, poses, _ = held_out_beta0(db, body, garment, config, cache, workers=workers, progress=progress,
+                                              pack=beta0_pack)
+            beta0 = beta0_report(db, body, poses, drapes)
 
     baseline = rows[0].results
     default = next(i for i, r in enumerate(rows) if r.group == "default")
@@ -357,6 +409,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
                                             if r.results["vs_baseline"] == "indistinguishable"],
         "stability": stability,
         "temporal": temporal,
+        "beta0": beta0,
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -389,6 +442,14 @@ def trade_markdown(report: dict) -> str:
             ratio = r["jitter_mm"] / max(entry["truth_jitter_mm"], 1e-12)
             lines.append(f"| {r['name']} | {r['error_mean_cm']:.2f} | {r['error_max_frame_cm']:.2f} | "
                          f"{r['jitter_mm']:.2f} | {ratio:.2f} |")
+    if report.get("beta0"):
+        lines += ["", "At beta0, against drapes of the same held-out poses at the reference shape (intervals: the "
+                  "poses resampled):", "", "| configuration (at beta0) | mean error (cm) | 95 % interval | "
+                  "p95 error (cm) |", "|---|---|---|---|"]
+        for r in report["beta0"]:
+            low, high = r["error_mean_ci_cm"]
+            lines.append(f"| {r['name']} | {r['error_mean_cm']:.2f} | {low:.2f}-{high:.2f} | "
+                         f"{r['error_p95_cm']:.2f} |")
     truth = report["test_set"]
     lines += ["", f"Ground truth: {truth['drapes']} newton drapes of {len(truth['poses'])} held-out poses x "
               f"{len(truth['betas'])} shapes; {100 * truth['ground_truth_inside_fraction']:.2f} % of their vertices "
@@ -513,9 +574,11 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     pack = None if args.ground_truth == "none" else (args.ground_truth or Path(args.out) / "ground_truth_drapes.npz")
     cache = args.cache or Path("out/eval-cache") / Path(args.database).stem
+    beta0_pack = None if pack is None else Path(pack).with_name("ground_truth_beta0.npz")
     report = evaluate(args.database, args.out, cache, clips=args.clips, quick=args.quick,
                       workers=args.workers, progress=not args.quiet,
-                      drape=json.loads(args.drape) if args.drape else None, pack=pack, test_set=args.test_set)
+                      drape=json.loads(args.drape) if args.drape else None, pack=pack, test_set=args.test_set,
+                      beta0_pack=beta0_pack)
     summary = {r["name"]: {**{k: round(r[k], 4) for k in ("error_mean_cm", "error_p95_cm", "ms_per_frame")},
                            "error_mean_ci_cm": [round(x, 4) for x in r["error_mean_ci_cm"]]}
                for r in report["rows"]}

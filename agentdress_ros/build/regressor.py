@@ -1,0 +1,277 @@
+"""Training of the `regressor` pose model (Santesteban et al. 2019, Sec. 3-4, at beta0), offline, with scikit-learn.
+
+    agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+
+Training data: the frames of a sequence pack (build.sequences: each frame's garment unposed to the rest frame with
+beta0's bones, their Eq. 5) and, optionally, the database's own beta0 drapes (the anchors' and the extra pose-model
+examples), unposed the same way. Model: PCA of the rest-frame garment (G components), an MLP from the pose's dofs
+(standardised) to the PCA coefficients. Written into the database as the group pose_model/regressor
+(engine.database.Regressor); the engine evaluates it with numpy (engine.pose_models.RegressorPoseModel).
+
+Validation holds out whole clips (never frames of a clip seen in training); the test clips of ../shared/mocap are
+refused outright. The command is idempotent: a database whose regressor was trained from the same data and
+settings is left alone; the file is replaced atomically, so a killed run leaves the old one intact.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import sys
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..engine.database import Regressor, read_database, write_regressor
+from .sequences import check_training_clips, load_sequence_pack
+
+FEATURES = ("all", "sensitive")
+
+
+@dataclass(frozen=True)
+class RegressorSettings:
+    components: int = 64  # PCA components of the rest-frame garment (G)
+    hidden: tuple = (256,)  # hidden layer widths of the MLP
+    activation: str = "tanh"
+    alpha: float = 1e-3  # L2 penalty of the MLP's weights
+    features: str = "all"  # "all": every non-root joint rotation; "sensitive": the dofs of the sensitivity distance
+    examples: bool = True  # also train on the database's beta0 drapes (anchors and pose-model examples)
+    max_iter: int = 800
+    seed: int = 0
+
+
+@dataclass
+class TrainingData:
+    poses: np.ndarray  # (F, B, 3) canonical rotation vectors
+    positions: np.ndarray  # (F, V, 3) float64 rest-frame garment at beta0
+    groups: np.ndarray  # (F,) str: clip name of each frame ("examples" for the database's drapes)
+
+
+def pose_dofs(db, features: str) -> np.ndarray:
+    """(I,) the pose dofs the MLP sees: every non-root joint's rotation, or those of the sensitivity distance."""
+    from ..engine.engine import distance_metric
+
+    n_bones = len(db.bone_names)
+    if features == "all":
+        return np.arange(3, 3 * n_bones, dtype=np.int32)
+    if features == "sensitive":
+        return distance_metric(db.region_dof, n_bones, 1e-6)[0].astype(np.int32)
+    raise ValueError(f"features must be one of {FEATURES}, got {features!r}")
+
+
+def example_data(db) -> TrainingData:
+    """The database's beta0 drapes (anchors and extra pose-model examples) unposed to the rest frame with beta0's
+    bones, as the sequence packs store their frames."""
+    from ..body import AnnyBody
+    from ..body.kinematics import forward_kinematics
+    from ..engine.kernels import unpose
+    from ..engine.pose_models import canonical_poses
+
+    shape = AnnyBody().shape(db.beta0)
+    heads = np.ascontiguousarray(shape.heads, dtype=np.float64)
+    parents = np.asarray(db.parents, dtype=np.int64)
+    poses = canonical_poses(db.example_poses)
+    weights = np.asarray(db.skin_weights, dtype=np.float64)
+    transforms = np.empty((len(parents), 3, 4))
+    positions = np.empty((len(poses), db.n_vertices, 3))
+    for m, pose in enumerate(poses):
+        forward_kinematics(pose, np.zeros(3), heads, parents, transforms)
+        unpose(np.asarray(db.example_drapes[m], dtype=np.float64), db.skin_indices, weights, transforms, positions[m])
+    return TrainingData(poses, positions, np.array(["examples"] * len(poses)))
+
+
+def pack_data(pack: dict, db) -> TrainingData:
+    """The frames of a loaded sequence pack (load_sequence_pack); refuses test clips and another garment."""
+    from ..engine.pose_models import canonical_poses
+
+    names = [str(n) for n in pack["clips"]]
+    check_training_clips(names)
+    if pack["rest"].shape != db.rest.shape or np.abs(pack["rest"] - db.rest).max() > 1e-5:
+        raise ValueError(f"the pack's rest garment ({str(pack['garment'])}) is not the database's ({db.garment})")
+    positions = np.asarray(pack["offsets"], dtype=np.float64) + np.asarray(pack["rest"], dtype=np.float64)
+    return TrainingData(canonical_poses(pack["rotvecs"]), positions, np.array(names)[pack["clip"]])
+
+
+def join(*parts: TrainingData) -> TrainingData:
+    return TrainingData(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("poses", "positions", "groups")))
+
+
+def fit(data: TrainingData, dofs: np.ndarray, settings: RegressorSettings, progress=None):
+    """(Regressor, sklearn MLPRegressor) trained on `data`. Deterministic given settings.seed (one BLAS thread)."""
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.neural_network import MLPRegressor
+    from threadpoolctl import threadpool_limits
+
+    n_frames, n_vertices = data.positions.shape[:2]
+    flat = data.positions.reshape(n_frames, -1)
+    mean = flat.mean(axis=0)
+    k = int(min(settings.components, n_frames - 1, flat.shape[1]))
+    with threadpool_limits(limits=1):
+        _, _, basis = np.linalg.svd(flat - mean, full_matrices=False)
+        basis = basis[:k]
+        # the sign of each component fixed (largest entry positive): the same data give the same stored basis
+        basis *= np.sign(basis[np.arange(k), np.abs(basis).argmax(axis=1)])[:, None]
+        coefficients = (flat - mean) @ basis.T
+        # one scale for every coefficient: the MLP's squared error is then the rest-frame vertex error
+        scale = np.full(k, coefficients[:, 0].std() + 1e-12)
+        x = data.poses.reshape(n_frames, -1)[:, dofs]
+        x_mean, x_scale = x.mean(axis=0), np.maximum(x.std(axis=0), 1e-3)
+        mlp = MLPRegressor(hidden_layer_sizes=tuple(settings.hidden), activation=settings.activation,
+                           solver="lbfgs", alpha=settings.alpha, max_iter=settings.max_iter, max_fun=10 * settings.max_iter,
+                           random_state=settings.seed, tol=1e-7)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            mlp.fit((x - x_mean) / x_scale, coefficients / scale)
+    regressor = Regressor(
+        dofs=np.asarray(dofs, dtype=np.int32), input_mean=x_mean.astype(np.float32),
+        input_scale=x_scale.astype(np.float32), weights=tuple(w.astype(np.float32) for w in mlp.coefs_),
+        biases=tuple(b.astype(np.float32) for b in mlp.intercepts_), coefficient_mean=np.zeros(k, np.float32),
+        coefficient_scale=scale.astype(np.float32), mean=mean.reshape(n_vertices, 3).astype(np.float32),
+        basis=basis.reshape(k, n_vertices, 3).astype(np.float32), activation=settings.activation,
+        info=json.loads(json.dumps({"settings": asdict(settings), "frames": int(n_frames),
+                                    "iterations": int(mlp.n_iter_)})))
+    return regressor, mlp
+
+
+def predict(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
+    """(F, V, 3) rest-frame garment for canonical poses (F, B, 3), in numpy (batched; the engine's per-frame path is
+    engine.pose_models.RegressorPoseModel)."""
+    x = (poses.reshape(len(poses), -1)[:, regressor.dofs] - regressor.input_mean) / regressor.input_scale
+    for n, (w, b) in enumerate(zip(regressor.weights, regressor.biases)):
+        x = x @ w.astype(np.float64) + b
+        if n < len(regressor.weights) - 1:
+            x = np.maximum(x, 0.0) if regressor.activation == "relu" else np.tanh(x)
+    coefficients = x * regressor.coefficient_scale + regressor.coefficient_mean
+    return regressor.mean + np.einsum("fg,gvk->fvk", coefficients, regressor.basis.astype(np.float64))
+
+
+def vertex_error(predicted: np.ndarray, truth: np.ndarray) -> float:
+    """Mean vertex distance (metres)."""
+    return float(np.linalg.norm(predicted - truth, axis=-1).mean())
+
+
+def clip_folds(clips, folds: int) -> list[list[str]]:
+    """Clips dealt into `folds` validation sets, in name order (whole clips, never frames)."""
+    clips = sorted(clips)
+    return [clips[i::folds] for i in range(min(folds, len(clips)))]
+
+
+def cross_validate(frames: TrainingData, extra: TrainingData | None, dofs, settings: RegressorSettings,
+                   folds: int = 3) -> dict:
+    """Mean rest-frame vertex error (m) on held-out clips: each fold trains on the other clips (plus `extra`, the
+    database's drapes, when given) and is scored on its own clips' frames; also the PCA's own error on them (what
+    any regressor with G components loses) and the mean garment's (predicting no pose dependence at all)."""
+    errors, pca_errors, mean_errors, weights = [], [], [], []
+    for held in clip_folds(np.unique(frames.groups), folds):
+        test = np.isin(frames.groups, held)
+        train = TrainingData(frames.poses[~test], frames.positions[~test], frames.groups[~test])
+        if extra is not None:
+            train = join(train, extra)
+        regressor, _ = fit(train, dofs, settings)
+        truth = frames.positions[test]
+        errors.append(vertex_error(predict(regressor, frames.poses[test]), truth))
+        basis = regressor.basis.reshape(len(regressor.basis), -1).astype(np.float64)
+        centred = truth.reshape(len(truth), -1) - regressor.mean.reshape(-1)
+        restored = (centred @ basis.T) @ basis + regressor.mean.reshape(-1)
+        pca_errors.append(vertex_error(restored.reshape(truth.shape), truth))
+        mean_errors.append(vertex_error(regressor.mean[None].astype(np.float64), truth))
+        weights.append(int(test.sum()))
+    w = np.asarray(weights, dtype=np.float64) / sum(weights)
+    return {"validation_error_m": float(np.dot(errors, w)), "pca_error_m": float(np.dot(pca_errors, w)),
+            "mean_garment_error_m": float(np.dot(mean_errors, w)), "folds": [list(f) for f in
+                                                                                clip_folds(np.unique(frames.groups),
+                                                                                           folds)],
+            "fold_errors_m": [float(e) for e in errors]}
+
+
+def training_key(pack_path, db, settings: RegressorSettings) -> str:
+    """What the trained weights depend on: the pack's arrays, the database's drapes used, settings, sklearn."""
+    import sklearn
+
+    digest = hashlib.sha256()
+    with np.load(pack_path) as data:
+        for name in ("coefficients", "basis", "mean", "scale", "rotvecs", "clip", "clips", "rest"):
+            digest.update(np.ascontiguousarray(data[name]).tobytes())
+    if settings.examples:
+        digest.update(np.ascontiguousarray(db.example_drapes).tobytes())
+        digest.update(np.ascontiguousarray(db.example_poses).tobytes())
+    digest.update(json.dumps({**asdict(settings), "sklearn": sklearn.__version__}, sort_keys=True).encode())
+    return digest.hexdigest()[:16]
+
+
+def store_regressor(path, regressor: Regressor) -> Path:
+    """Write `regressor` into the database file at `path` (other groups untouched), atomically: a copy is changed,
+    read back through the validating reader, then renamed over the original."""
+    import h5py
+
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    shutil.copyfile(path, partial)
+    with h5py.File(partial, "r+") as h5:
+        write_regressor(h5, regressor)
+    read_database(partial)
+    partial.replace(path)
+    return path
+
+
+def train_database_regressor(db_path, pack_path, settings: RegressorSettings, folds: int = 3, force: bool = False,
+                             progress: bool = True) -> dict:
+    """Cross-validate by clip, train on every training clip, and store the regressor in the database (idempotent)."""
+    from tqdm import tqdm
+
+    db = read_database(db_path)
+    key = training_key(pack_path, db, settings)
+    if db.regressor is not None and db.regressor.info.get("key") == key and not force:
+        return {"database": str(db_path), "skipped": "a regressor trained from the same data and settings is "
+                "stored already", **db.regressor.info}
+    bar = tqdm(total=folds + 2, desc="regressor", unit="fit", disable=not progress)
+    frames = pack_data(load_sequence_pack(pack_path), db)
+    extra = example_data(db) if settings.examples else None
+    bar.update()
+    dofs = pose_dofs(db, settings.features)
+    report = cross_validate(frames, extra, dofs, settings, folds)
+    bar.update(folds)
+    regressor, _ = fit(join(frames, extra) if extra is not None else frames, dofs, settings)
+    bar.update()
+    bar.close()
+    train_error = vertex_error(predict(regressor, frames.poses), frames.positions)
+    info = {**regressor.info, "key": key, "pack": str(pack_path), "clips": sorted(set(frames.groups.tolist())),
+            "pack_frames": int(len(frames.poses)), "example_drapes": 0 if extra is None else int(len(extra.poses)),
+            "training_error_m": train_error, **report}
+    regressor = replace(regressor, info=info)
+    before = Path(db_path).stat().st_size
+    store_regressor(db_path, regressor)
+    return {"database": str(db_path), "bytes_before": before, "bytes_after": Path(db_path).stat().st_size, **info}
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="agentdress regressor", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--database", required=True, help="database file to write the regressor into")
+    parser.add_argument("--pack", required=True, help="sequence pack of the training clips (agentdress sequences)")
+    defaults = RegressorSettings()
+    parser.add_argument("--components", type=int, default=defaults.components)
+    parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden))
+    parser.add_argument("--activation", choices=("tanh", "relu"), default=defaults.activation)
+    parser.add_argument("--alpha", type=float, default=defaults.alpha)
+    parser.add_argument("--features", choices=FEATURES, default=defaults.features)
+    parser.add_argument("--no-examples", action="store_true", help="train on the pack's frames only")
+    parser.add_argument("--max-iter", type=int, default=defaults.max_iter)
+    parser.add_argument("--seed", type=int, default=defaults.seed)
+    parser.add_argument("--folds", type=int, default=3, help="validation folds of whole clips")
+    parser.add_argument("--force", action="store_true", help="retrain even if the stored regressor is up to date")
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    settings = RegressorSettings(components=args.components, hidden=tuple(args.hidden), activation=args.activation,
+                                 alpha=args.alpha, features=args.features, examples=not args.no_examples,
+                                 max_iter=args.max_iter, seed=args.seed)
+    report = train_database_regressor(args.database, args.pack, settings, folds=args.folds, force=args.force,
+                                      progress=not args.quiet)
+    json.dump(report, sys.stdout, indent=1)
+    print()
+    return 0

@@ -1,0 +1,173 @@
+"""The `regressor` pose model: training (scikit-learn, offline), numpy inference, the anchor fold, storage."""
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from agentdress_ros.build.regressor import (RegressorSettings, TrainingData, clip_folds, fit, pack_data, pose_dofs,
+                                            predict, store_regressor, train_database_regressor)
+from agentdress_ros.build.sequences import load_sequence_pack
+from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
+from agentdress_ros.engine.engine import permute_vertices, select_database
+
+ROOT = Path(__file__).resolve().parents[1]
+DATABASE = ROOT / "data" / "tshirt_default.h5"
+PACK = ROOT / "data" / "tshirt_sequences.npz"
+TINY = RegressorSettings(components=6, hidden=(12,), alpha=1.0, examples=False, max_iter=40, seed=3)
+
+
+@pytest.fixture(scope="module")
+def database():
+    return read_database(DATABASE)
+
+
+@pytest.fixture(scope="module")
+def frames(database):
+    """Every 8th frame of three clips of the shipped T-shirt pack."""
+    data = pack_data(load_sequence_pack(PACK), database)
+    keep = np.flatnonzero(np.isin(data.groups, np.unique(data.groups)[:3]))[::8]
+    return TrainingData(data.poses[keep], data.positions[keep], data.groups[keep])
+
+
+@pytest.fixture(scope="module")
+def trained(database, frames):
+    regressor, mlp = fit(frames, pose_dofs(database, "all"), TINY)
+    return regressor, mlp
+
+
+def test_numpy_inference_equals_the_sklearn_model(body, database, frames, trained):
+    regressor, mlp = trained
+    x = (frames.poses.reshape(len(frames.poses), -1)[:, regressor.dofs] - regressor.input_mean) / regressor.input_scale
+    expected = (mlp.predict(x) * regressor.coefficient_scale) @ regressor.basis.reshape(len(regressor.basis), -1)
+    expected = expected.reshape(frames.positions.shape) + regressor.mean
+    np.testing.assert_allclose(predict(regressor, frames.poses), expected, atol=2e-5)
+    # the engine's per-frame path (internal vertex order, float64 buffers) gives the same rest-frame garment
+    engine = Engine(replace(database, regressor=regressor), body, EngineConfig(pose_model="regressor",
+                                                                                  dtype="float64"))
+    for pose, want in zip(frames.poses[:3], expected[:3]):
+        out = np.empty_like(want)
+        out[engine.order] = engine.pose_model.evaluate(pose, np.zeros(3), None).T
+        np.testing.assert_allclose(out, want, atol=2e-5)
+
+
+def test_training_is_deterministic_given_its_seed(database, frames, trained):
+    again, _ = fit(frames, pose_dofs(database, "all"), TINY)
+    for a, b in zip(trained[0].weights + trained[0].biases, again.weights + again.biases):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(trained[0].basis, again.basis)
+
+
+def test_fold_makes_synthesis_exact_at_an_anchor(body, database, trained):
+    """At an anchor's pose and beta0, synthesis returns the anchor's beta0 drape whatever the pose model's error;
+    at another shape the result does not depend on the (folded) pose model at all."""
+    db = replace(database, regressor=trained[0])
+    second, _ = fit(_frames_of(database, 1), pose_dofs(database, "sensitive"), replace(TINY, seed=4))
+    config = dict(pose_model="regressor", dtype="float64", penetration=False, decay=False)
+    anchor = 3
+    drape = db.example_drapes[np.flatnonzero(np.abs(db.example_poses - db.anchor_poses[anchor]).max(axis=(1, 2))
+                                              <= 1e-6)[0]]
+    pose = db.anchor_poses[anchor].astype(np.float64)
+    folded = Engine(db, body, EngineConfig(**config))
+    unfolded = Engine(db, body, EngineConfig(**config, fold=False))
+    error = np.linalg.norm(folded.synthesize(pose) - drape, axis=1)
+    error_unfolded = np.linalg.norm(unfolded.synthesize(pose) - drape, axis=1)
+    assert error.max() < 1e-4 < error_unfolded.mean()
+    other = Engine(replace(database, regressor=second), body, EngineConfig(**config))
+    beta = np.asarray(db.beta0) + np.array([0.2, 0, 0.1, -0.1, 0, 0])
+    folded.set_shape(beta)
+    other.set_shape(beta)
+    np.testing.assert_allclose(folded.synthesize(pose), other.synthesize(pose), atol=1e-4)
+
+
+def test_database_round_trip_select_and_permute(body, tmp_path, database, trained):
+    regressor = trained[0]
+    path = write_database(tmp_path / "db.h5", replace(database, regressor=regressor))
+    back = read_database(path).regressor
+    for a, b in zip((regressor.dofs, regressor.mean, regressor.basis, *regressor.weights, *regressor.biases),
+                    (back.dofs, back.mean, back.basis, *back.weights, *back.biases)):
+        np.testing.assert_array_equal(a, b)
+    assert back.activation == regressor.activation and back.info == regressor.info
+    db = read_database(path)
+    ids = np.arange(0, db.n_vertices, 7)
+    sub = select_database(db, EngineConfig(vertices=ids))
+    np.testing.assert_array_equal(sub.regressor.basis, regressor.basis[:, ids])
+    order = np.random.default_rng(0).permutation(db.n_vertices)
+    np.testing.assert_array_equal(permute_vertices(db, order).regressor.mean, regressor.mean[order])
+    # a level of detail outputs the full engine's vertices (pose model alone, no blend across vertices)
+    pose = db.anchor_poses[1].astype(np.float64) * 0.7
+    config = dict(pose_model="regressor", shape_model=False, dtype="float64")
+    full = Engine(db, body, EngineConfig(**config)).synthesize(pose)
+    part = Engine(db, body, EngineConfig(**config, vertices=ids)).synthesize(pose)
+    np.testing.assert_allclose(part, full[ids], atol=1e-9)
+
+
+@pytest.mark.parametrize("mutate, field", [
+    (lambda g: g["layer_00/weights"].__setitem__((0, 0), np.nan), "pose_model/regressor/layer_00/weights"),
+    (lambda g: _swap(g, "basis", np.zeros((2, 5, 3), np.float32)), "pose_model/regressor/basis"),
+    (lambda g: _swap(g, "dofs", np.r_[g["dofs"][:1], g["dofs"][:-1]]), "pose_model/regressor/dofs"),
+    (lambda g: _swap(g, "dofs", np.array([3, 4, 5], np.int32)), "pose_model/regressor/input_mean"),
+    (lambda g: _swap(g, "input_scale", -np.ones(g["input_scale"].shape, np.float32)),
+     "pose_model/regressor/input_scale"),
+    (lambda g: g.attrs.__setitem__("activation", "sigmoid"), "pose_model/regressor/activation"),
+    (lambda g: g.attrs.__setitem__("layers", 3), "pose_model/regressor/layer_02/weights"),
+    (lambda g: g.attrs.__setitem__("info", "{not json"), "pose_model/regressor/info"),
+])
+def test_corrupt_regressor_group_names_file_and_field(tmp_path, database, trained, mutate, field):
+    path = write_database(tmp_path / "db.h5", replace(database, regressor=trained[0]))
+    with h5py.File(path, "r+") as h5:
+        mutate(h5["pose_model/regressor"])
+    with pytest.raises(DatabaseError) as error:
+        read_database(path)
+    assert str(path) in str(error.value) and field in str(error.value), str(error.value)
+
+
+def test_training_refuses_test_clips_and_holds_out_whole_clips(database):
+    pack = load_sequence_pack(PACK)
+    pack["clips"] = np.array(["02_01"] + [str(c) for c in pack["clips"][1:]])
+    with pytest.raises(ValueError, match="02_01"):
+        pack_data(pack, database)
+    folds = clip_folds(["a", "b", "c", "d", "e"], 3)
+    assert sorted(sum(folds, [])) == ["a", "b", "c", "d", "e"] and len(folds) == 3
+
+
+def test_command_writes_the_group_once_and_no_learning_library_at_run_time(tmp_path, database):
+    """Training into a database is idempotent; a frame with the stored regressor imports no sklearn/torch/jax."""
+    path = write_database(tmp_path / "db.h5", database)
+    pack = tmp_path / "pack.npz"
+    with np.load(PACK) as data:
+        arrays = {name: data[name] for name in data.files}
+    keep = np.isin(arrays["clip"], [0, 1, 2]) & (np.arange(len(arrays["clip"])) % 6 == 0)
+    for name in ("coefficients", "rotvecs", "root_translation", "root_velocity", "cloth_speed", "body_speed", "clip",
+                 "frame"):
+        arrays[name] = arrays[name][keep]
+    np.savez(pack, **arrays)
+    first = train_database_regressor(path, pack, TINY, folds=2, progress=False)
+    assert "skipped" not in first and first["bytes_after"] > first["bytes_before"]
+    assert first["validation_error_m"] > 0 and len(first["folds"]) == 2
+    again = train_database_regressor(path, pack, TINY, folds=2, progress=False)
+    assert "skipped" in again and again["key"] == first["key"]
+    store_regressor(path, read_database(path).regressor)  # rewriting the group keeps the file valid
+    script = (f"import sys, numpy as np; from agentdress_ros.engine import load_engine, EngineConfig; "
+              f"e = load_engine({str(path)!r}, EngineConfig(pose_model='regressor')); "
+              f"out = e.synthesize(np.zeros((31, 3))); assert np.isfinite(out).all(); "
+              f"print([m for m in ('sklearn', 'torch', 'jax') if m in sys.modules])")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout.strip().splitlines()[-1].replace("'", '"')) == []
+
+
+def _swap(group, name, value):
+    del group[name]
+    group.create_dataset(name, data=value)
+
+
+def _frames_of(database, clip_index):
+    data = pack_data(load_sequence_pack(PACK), database)
+    keep = np.flatnonzero(data.groups == np.unique(data.groups)[clip_index])[::4]
+    return TrainingData(data.poses[keep], data.positions[keep], data.groups[keep])
+
