@@ -35,7 +35,6 @@ setup(
         "numba",
         "scipy",
         "trimesh",
-        "scikit-learn",
         "h5py",
         "threadpoolctl",
         "tqdm",
@@ -47,7 +46,7 @@ setup(
     ],
     extras_require={
         # Offline database builds (ground-truth cloth drapes); never part of the runtime install.
-        "build": ["newton==1.8.0", "warp-lang==1.19.0", "dask[distributed]==2026.8.0"],
+        "build": ["newton==1.8.0", "warp-lang==1.19.0", "dask[distributed]==2026.8.0", "scikit-learn==1.9.1"],
         "test": ["pytest", "hypothesis", "colcon-core", "colcon-ros", "playwright"],
     },
     maintainer="agentdress_ros maintainers",

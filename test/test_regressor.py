@@ -18,7 +18,7 @@ from agentdress_ros.engine.engine import permute_vertices, select_database
 ROOT = Path(__file__).resolve().parents[1]
 DATABASE = ROOT / "data" / "tshirt_default.h5"
 PACK = ROOT / "data" / "tshirt_sequences.npz"
-TINY = RegressorSettings(components=6, hidden=(12,), alpha=1.0, examples=False, max_iter=40, seed=3)
+TINY = RegressorSettings(components=6, hidden=(12,), alpha=1.0, examples=0, max_iter=40, seed=3)
 
 
 @pytest.fixture(scope="module")

@@ -36,7 +36,8 @@ class RegressorSettings:
     activation: str = "tanh"
     alpha: float = 1e-3  # L2 penalty of the MLP's weights
     features: str = "all"  # "all": every non-root joint rotation; "sensitive": the dofs of the sensitivity distance
-    examples: bool = True  # also train on the database's beta0 drapes (anchors and pose-model examples)
+    examples: int = 5  # copies of the database's beta0 drapes (anchors and pose-model examples) among the training
+    # frames: static drapes, like the held-out ground truth, and few beside thousands of frames (0: not used)
     max_iter: int = 800
     seed: int = 0
 
@@ -229,7 +230,7 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
                 "stored already", **db.regressor.info}
     bar = tqdm(total=folds + 2, desc="regressor", unit="fit", disable=not progress)
     frames = pack_data(load_sequence_pack(pack_path), db)
-    extra = example_data(db) if settings.examples else None
+    extra = join(*[example_data(db)] * settings.examples) if settings.examples else None
     bar.update()
     dofs = pose_dofs(db, settings.features)
     report = cross_validate(frames, extra, dofs, settings, folds)
@@ -239,7 +240,7 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
     bar.close()
     train_error = vertex_error(predict(regressor, frames.poses), frames.positions)
     info = {**regressor.info, "key": key, "pack": str(pack_path), "clips": sorted(set(frames.groups.tolist())),
-            "pack_frames": int(len(frames.poses)), "example_drapes": 0 if extra is None else int(len(extra.poses)),
+            "pack_frames": int(len(frames.poses)), "example_drapes": int(len(db.example_poses)) if extra is not None else 0,
             "training_error_m": train_error, **report}
     regressor = replace(regressor, info=info)
     before = Path(db_path).stat().st_size
@@ -260,7 +261,8 @@ def main(argv=None) -> int:
     parser.add_argument("--activation", choices=("tanh", "relu"), default=defaults.activation)
     parser.add_argument("--alpha", type=float, default=defaults.alpha)
     parser.add_argument("--features", choices=FEATURES, default=defaults.features)
-    parser.add_argument("--no-examples", action="store_true", help="train on the pack's frames only")
+    parser.add_argument("--examples", type=int, default=defaults.examples, help="copies of the database's beta0 "
+                        "drapes among the training frames (0: the pack's frames only)")
     parser.add_argument("--max-iter", type=int, default=defaults.max_iter)
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--folds", type=int, default=3, help="validation folds of whole clips")
@@ -268,7 +270,7 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     settings = RegressorSettings(components=args.components, hidden=tuple(args.hidden), activation=args.activation,
-                                 alpha=args.alpha, features=args.features, examples=not args.no_examples,
+                                 alpha=args.alpha, features=args.features, examples=args.examples,
                                  max_iter=args.max_iter, seed=args.seed)
     report = train_database_regressor(args.database, args.pack, settings, folds=args.folds, force=args.force,
                                       progress=not args.quiet)
