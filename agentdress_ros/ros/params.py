@@ -54,7 +54,7 @@ PARAMETERS: dict[str, Spec] = {
     "garment_vertices": Spec([], "per-garment vertex budget 'name:count' of skinned templates (level of detail)"),
     "garment_databases": Spec([], "per-garment AgentDress database 'name:path.h5' (relative to the working dir)"),
     "engine": Spec(["pose_model=examples"], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
-                       "examples), neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
+                       "examples, regressor), fold, neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
                        "(float32, float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
     "display_subdivision": Spec(1, "rounds of Loop subdivision (0, 1, 2) of each garment for display, published as "
                                    "its cloud and mesh (a fixed sparse matrix after penetration handling; README "
@@ -133,7 +133,7 @@ def parse_garment_map(name: str, value) -> dict[str, str]:
 _ENGINE_FIELDS = {
     "pose_model": str, "taylor": str, "dtype": str,
     "neighbors": int, "pose_neighbors": int, "components": int, "anchors": int,
-    "shape_model": bool, "penetration": bool, "decay": bool, "clamp_to_training_range": bool,
+    "shape_model": bool, "penetration": bool, "decay": bool, "clamp_to_training_range": bool, "fold": bool,
     "damping": float, "penetration_margin": float, "power": float,
 }
 
