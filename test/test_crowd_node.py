@@ -186,6 +186,23 @@ def test_a_bad_message_to_one_agent_never_affects_another(crowd):
     assert np.isfinite(bob).all()
 
 
+def test_a_body_shape_message_refits_its_agent_only(crowd):
+    client, _ = crowd
+    walk = make_motion("walk", fps=30.0)
+    alice_before, _ = client.answer("alice", walk.rotvecs[8], walk.root_translation[8])
+    bob_before, _ = client.answer("bob", walk.rotvecs[8], walk.root_translation[8])
+    heavy = [0.5, 0.6667, 0.5, 0.5, 0.9, 0.5]  # weight up
+    deadline, bob = time.monotonic() + 30.0, bob_before
+    while time.monotonic() < deadline and np.abs(bob - bob_before).max() < 0.01:
+        client.shapes["bob"].publish(Float32MultiArray(data=heavy))
+        client.spin(0.5)
+        bob, _ = client.answer("bob", walk.rotvecs[8], walk.root_translation[8])
+    assert np.abs(bob - bob_before).max() >= 0.01, "bob's new shape never reached his garment"
+    alice, _ = client.answer("alice", walk.rotvecs[8], walk.root_translation[8])
+    assert np.abs(alice - alice_before).max() < 1e-4  # same pose, same shape: alice is untouched
+    client.shapes["bob"].publish(Float32MultiArray(data=list(BOB_SHAPE)))
+
+
 def test_agents_are_added_and_removed_at_run_time(crowd):
     client, child = crowd
     walk = make_motion("walk", fps=30.0)
@@ -214,8 +231,14 @@ def test_an_agent_out_of_view_is_not_published_and_returns_with_the_view(crowd):
     client.look((-6.0, 0.0, 1.6), 0.0)  # both agents ahead (alice at 0 m, bob's frame at 3 m)
     client.spin(0.5)
     client.answer("alice", walk.rotvecs[1], walk.root_translation[1])
+    # a near agent in view is answered on arrival through a second reader; the tick polls the others
+    readers = client.joints["alice"].get_subscription_count
+    assert spin_until(client.executor, lambda: readers() == 1, 10.0), readers()  # 6 m: mid tier
+    client.look((-2.0, 0.0, 1.6), 0.0)
+    assert spin_until(client.executor, lambda: readers() == 2, 10.0), readers()  # 2 m: near
     client.look((-6.0, 0.0, 1.6), np.pi)  # turned away
     client.spin(0.5)
+    assert spin_until(client.executor, lambda: readers() == 1, 10.0), readers()
     count = len(client.clouds["alice"])
     for i in range(10):
         client.publish_pose("alice", walk.rotvecs[i], walk.root_translation[i])

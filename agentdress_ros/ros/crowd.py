@@ -15,6 +15,10 @@ publish_body, overridden per agent by `agent.<a>.<parameter>` (startup, from the
 (its frame's origin in the scene, for distances) and `agent.<a>.extra_cost_ms` (an artificial cost per frame, for
 tests and benchmarks of the frame budget). Agents added to `agents` at run time are built on the scene's worker
 thread and go live on a later tick; removed ones are dropped at once (their publishers destroyed).
+
+Inputs are polled: the agents' subscriptions sit on a second node that no executor spins, and each tick takes what
+waited (a KEEP_LAST queue keeps only the newest poses of agents nobody looked at). Near agents in view also get a
+subscription on the spun node, whose callback dresses each pose as it arrives.
 """
 from __future__ import annotations
 
@@ -22,6 +26,8 @@ import time
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.node import Node
 from sensor_msgs.msg import JointState, PointCloud2
 from shape_msgs.msg import Mesh
 from std_msgs.msg import Float32MultiArray
@@ -30,6 +36,19 @@ from ..scene import AgentSpec, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewe
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .messages import make_mesh, make_point_cloud, set_cloud_vertices
 from .params import ParameterError, validate
+
+# rclpy gives every publisher and subscription two QoS event handlers (incompatible QoS, incompatible type), and its
+# executor rebuilds the wait set from every handler on each callback, matching handlers by list search: with six
+# entities per agent, 100 agents made that quadratic walk the node's largest cost. Per-agent entities go without;
+# the node's own topics keep them, so a mismatched QoS is still reported there.
+QUIET_SUBSCRIPTION = SubscriptionEventCallbacks(use_default_callbacks=False)
+QUIET_PUBLISHER = PublisherEventCallbacks(use_default_callbacks=False)
+TOPICS = ("joint_states", "body_shape")  # an agent's inputs, in the order of its entity's "subs"
+SHAPE_POLL_TICKS = 9  # each agent's body_shape is looked at every 9th tick
+
+
+def _never_called(msg):
+    """Callback of the polled subscriptions (their node is never spun)."""
 
 __all__ = ["AGENT_KEYS", "Crowd", "agent_override_names", "scene_config"]
 
@@ -80,6 +99,13 @@ class Crowd:
             value = node._parameter_overrides[name].value
             self.overrides.setdefault(agent, {})[key] = validate_agent_key(key, value)
         self.entities: dict[str, dict] = {}  # agent -> {"subs": [...], "points": {g: pub}, "mesh": {g: pub}}
+        # The agents' inputs live on a second node that no executor spins: rclpy's executor walks every entity it
+        # waits on for each message it hands out, so with hundreds of subscriptions (2 per agent) receiving cost
+        # grew with the crowd. The tick takes what waited since the last one; only the agents it dresses cost
+        # more than a take, and a KEEP_LAST queue holds just the newest poses of the others.
+        self.inputs = Node(f"{node.get_name()}_inputs", namespace=node.get_namespace(), context=node.context,
+                           enable_rosout=False, start_parameter_services=False)
+        self._shape_turn = 0
         self.clouds: dict[tuple, PointCloud2] = {}
         self.topology: dict[str, dict] = {}  # agent -> {garment: Mesh}, made on the worker
         self.viewer_sub = None
@@ -138,13 +164,12 @@ class Crowd:
             self.scene.request_agent(self.spec(name))
 
     def _create_inputs(self, name: str):
-        node = self.node
-        subs = [node.create_subscription(JointState, f"{name}/joint_states",
-                                         node._guarded(f"{name}/joint_states", lambda m, n=name: self._on_joint_state(n, m)),
-                                         node._qos("joint_states")),
-                node.create_subscription(Float32MultiArray, f"{name}/body_shape",
-                                         node._guarded(f"{name}/body_shape", lambda m, n=name: self._on_shape(n, m)),
-                                         node._qos("shape"))]
+        """The agent's input subscriptions, on the node the executor never waits on (see `poll`)."""
+        inputs = self.inputs
+        subs = [inputs.create_subscription(JointState, f"{name}/joint_states", _never_called,
+                                           self.node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION),
+                inputs.create_subscription(Float32MultiArray, f"{name}/body_shape", _never_called,
+                                           self.node._qos("shape"), event_callbacks=QUIET_SUBSCRIPTION)]
         self.entities[name] = {"subs": subs, "points": {}, "mesh": {}, "installed": None}
 
     def _prepare(self, agent):
@@ -165,8 +190,9 @@ class Crowd:
         for g in agent.garments:
             if g not in entity["points"]:
                 entity["points"][g] = node.create_publisher(PointCloud2, f"~/{agent.name}/{g}/points",
-                                                            node._qos("points"))
-                entity["mesh"][g] = node.create_publisher(Mesh, f"~/{agent.name}/{g}/mesh", node.topology_qos)
+                                                            node._qos("points"), event_callbacks=QUIET_PUBLISHER)
+                entity["mesh"][g] = node.create_publisher(Mesh, f"~/{agent.name}/{g}/mesh", node.topology_qos,
+                                                          event_callbacks=QUIET_PUBLISHER)
             mesh = self.topology.get(agent.name, {}).get(g)
             if mesh is not None:
                 entity["mesh"][g].publish(mesh)
@@ -177,7 +203,9 @@ class Crowd:
         if entity is None:
             return
         for sub in entity["subs"]:
-            self.node.destroy_subscription(sub)
+            self.inputs.destroy_subscription(sub)
+        if "arrival" in entity:
+            self.node.destroy_subscription(entity["arrival"])
         for pub in list(entity["points"].values()) + list(entity["mesh"].values()):
             self.node.destroy_publisher(pub)
         for key in [k for k in self.clouds if k[0] == name]:
@@ -185,6 +213,55 @@ class Crowd:
         self.topology.pop(name, None)
 
     # ---- inputs ---------------------------------------------------------------------------------------------
+    def _drain(self, name: str, which: int, on_message) -> None:
+        """Take every message waiting on agent `name`'s subscription `which` (0 joint states, 1 body shape), oldest
+        first (partial JointStates add up), and hand each to `on_message(name, msg)` (None: drop them)."""
+        entity = self.entities.get(name)
+        if entity is None:
+            return
+        sub = entity["subs"][which]
+        handle = self.node._guarded(f"{name}/{TOPICS[which]}", on_message)
+        with sub.handle:
+            while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                if on_message is not None:
+                    handle(name, taken[0])
+
+    def poll(self):
+        """Tick: every agent's waiting poses (dropped where the agent's arrival subscription has them already),
+        and a ninth of the agents' body shapes (each looked at rate_hz / 9)."""
+        for name, entity in list(self.entities.items()):
+            self._drain(name, 0, None if "arrival" in entity else self._on_joint_state)
+        names = sorted(self.entities)
+        for name in names[self._shape_turn % SHAPE_POLL_TICKS::SHAPE_POLL_TICKS]:
+            self._drain(name, 1, self._on_shape)
+        self._shape_turn += 1
+
+    def sync_arrival(self):
+        """After a tick: near agents in view get a second JointState subscription on the spun node, whose
+        callback answers each pose as it arrives (at most once per half period: a flood is answered at the node's
+        rate); an agent leaving that tier loses it. Few agents are near, so the executor waits on few entities."""
+        node, protect = self.node, self.scene.config.protect_tiers
+        for agent in list(self.scene.agents.values()):
+            entity = self.entities.get(agent.name)
+            if entity is None:
+                continue
+            want = self.config["answer_on_arrival"] and agent.tier is not None and agent.tier < protect \
+                and agent.visible
+            sub = entity.get("arrival")
+            if want and sub is None:
+                entity["arrival"] = node.create_subscription(
+                    JointState, f"{agent.name}/joint_states",
+                    node._guarded(f"{agent.name}/joint_states", lambda m, n=agent.name: self._on_arrival(n, m)),
+                    node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION)
+            elif not want and sub is not None:
+                node.destroy_subscription(entity.pop("arrival"))
+
+    def _on_arrival(self, name: str, msg: JointState):
+        self._on_joint_state(name, msg)
+        agent = self.scene.agents.get(name)
+        if agent is not None and time.monotonic() - agent.last_dressed >= 0.5 / self.config["rate_hz"]:
+            self.scene.dress_now(name, self._publish)
+
     def _on_joint_state(self, name: str, msg: JointState):
         node = self.node
         node.stats.counts["joint_states_received"] += 1
@@ -205,8 +282,6 @@ class Crowd:
             node.stats.counts["new_timelines"] += 1
             for garment in agent.garments.values():
                 garment.reset()
-        if self.config["answer_on_arrival"] and time.monotonic() - agent.last_dressed >= 0.5 / self.config["rate_hz"]:
-            self.scene.dress_now(name, self._publish)
 
     def _on_shape(self, name: str, msg: Float32MultiArray):
         self.node.stats.counts["shapes_received"] += 1
@@ -249,11 +324,13 @@ class Crowd:
             entity["points"][g].publish(cloud)
 
     def tick(self) -> dict:
+        self.poll()
         for agent in list(self.scene.agents.values()):
             entity = self.entities.get(agent.name)
             if entity is not None and entity["installed"] is not agent:
                 self._install(agent)
         report = self.scene.tick(self._publish)
+        self.sync_arrival()
         for agent in list(self.scene.agents.values()):  # installed by this tick (built on the worker)
             entity = self.entities.get(agent.name)
             if entity is not None and entity["installed"] is not agent:
@@ -279,3 +356,4 @@ class Crowd:
 
     def stop(self):
         self.scene.stop()
+        self.inputs.destroy_node()
