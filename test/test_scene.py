@@ -318,3 +318,25 @@ def test_agents_of_one_shape_share_its_state_until_one_changes(scene):
     while not scene.idle() and time.monotonic() < deadline:
         time.sleep(0.01)
     assert tb._state is state
+
+
+def test_tiers_and_visibility_of_many_agents_match_one_at_a_time():
+    rng = np.random.default_rng(5)
+    lod = LodPolicy(tiers=parse_tiers(["near 3 synthesis", "mid 8 synthesis", "far 20 skinned",
+                                       "distant inf skinned every=3"]))
+    distances = np.concatenate([rng.uniform(0.0, 40.0, 400), [3.0, 3.5, 8.0, 8.5, 20.0, 2.5, 7.5]])
+    current = rng.integers(-1, 4, len(distances))
+    together = lod.tiers_of(distances, current)
+    alone = [lod.tier(d, None if c < 0 else int(c)) for d, c in zip(distances, current)]
+    assert together.tolist() == alone
+    viewer = Viewer.from_pose((0.5, -1.0, 1.6), (0.0, 0.0, np.sin(0.3), np.cos(0.3)))
+    centres = rng.uniform(-30.0, 30.0, (400, 3))
+    centres[:5] = viewer.position + rng.uniform(-0.5, 0.5, (5, 3))  # within the agent radius: always visible
+    seen = lod.visible_of(viewer, centres)
+    assert seen[:5].all() and 0 < seen.sum() < len(seen)
+    # analytic: the cone's half-angle is 55 + 10 degrees, widened by asin(radius / distance)
+    d = centres - viewer.position
+    r = np.linalg.norm(d, axis=1)
+    angle = np.degrees(np.arccos(np.clip(d @ viewer.forward / r, -1, 1)))
+    expected = (r <= 1.0) | (angle <= 65.0 + np.degrees(np.arcsin(np.minimum(1.0, 1.0 / r))))
+    assert seen.tolist() == expected.tolist()

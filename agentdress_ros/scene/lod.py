@@ -161,24 +161,32 @@ class LodPolicy:
     def tier(self, distance: float, current: int | None) -> int:
         """Tier index for `distance`, keeping `current` until the distance is `hysteresis` beyond the boundary (no
         flicker at a boundary; a large jump goes straight to the tier it lands in)."""
-        bounds = [t.max_distance for t in self.tiers]
-        raw = next(i for i, b in enumerate(bounds) if distance < b or math.isinf(b))
-        if current is None or raw == current or current >= len(bounds):
-            return raw
+        return int(self.tiers_of(np.array([distance]), np.array([-1 if current is None else current]))[0])
+
+    def tiers_of(self, distances: np.ndarray, current: np.ndarray) -> np.ndarray:
+        """`tier` of every agent at once: distances (N,), current tiers (N,) int, -1 for none -> (N,) int."""
+        bounds = np.array([t.max_distance for t in self.tiers])
+        distances = np.asarray(distances, dtype=np.float64)
+        current = np.asarray(current)
+        raw = np.minimum(np.searchsorted(bounds, distances, side="right"), len(bounds) - 1)
+        held = (current >= 0) & (current < len(bounds)) & (raw != current)
         h = self.hysteresis
-        if raw > current:  # moving out: must clear the boundary of the tier below by h
-            return raw if distance >= bounds[raw - 1] + h else raw - 1
-        return raw if distance <= bounds[raw] - h else raw + 1  # moving in
+        # moving out: must clear the boundary of the tier below by h; moving in: clear its own boundary by h
+        moving_out = np.where(distances >= bounds[np.maximum(raw - 1, 0)] + h, raw, raw - 1)
+        moving_in = np.where(distances <= bounds[raw] - h, raw, raw + 1)
+        return np.where(held, np.where(raw > current, moving_out, moving_in), raw)
 
     def visible(self, viewer: Viewer | None, centre) -> bool:
         """Inside the viewing cone widened by the margin and by the agent's angular radius (always when close)."""
+        return bool(self.visible_of(viewer, np.asarray(centre, dtype=np.float64)[None])[0])
+
+    def visible_of(self, viewer: Viewer | None, centres: np.ndarray) -> np.ndarray:
+        """`visible` of every agent at once: centres (N, 3) -> (N,) bool."""
         if viewer is None or not self.cull:
-            return True
-        d = np.asarray(centre, dtype=np.float64) - viewer.position
-        distance = float(np.sqrt(d @ d))
-        if distance <= self.agent_radius:
-            return True
-        cos_angle = float(d @ viewer.forward) / distance
-        angle = math.degrees(math.acos(max(-1.0, min(1.0, cos_angle))))
-        widen = math.degrees(math.asin(min(1.0, self.agent_radius / distance)))
-        return angle <= 0.5 * self.fov_deg + self.margin_deg + widen
+            return np.ones(len(centres), dtype=bool)
+        d = centres - viewer.position
+        distance = np.sqrt(np.einsum("ij,ij->i", d, d))
+        safe = np.maximum(distance, 1e-12)
+        angle = np.degrees(np.arccos(np.clip(d @ viewer.forward / safe, -1.0, 1.0)))
+        widen = np.degrees(np.arcsin(np.minimum(1.0, self.agent_radius / safe)))
+        return (distance <= self.agent_radius) | (angle <= 0.5 * self.fov_deg + self.margin_deg + widen)

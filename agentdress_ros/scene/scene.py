@@ -14,7 +14,6 @@ level; the decisions run nearest first, each timed (dressing + publish) into its
 """
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections import Counter, deque
@@ -338,12 +337,16 @@ class Scene:
         self.stats.culled.clear()
         candidates, by_key = [], {}
         viewer = self.viewer if config.lod_enabled else None
-        for agent in self.agents.values():
+        agents = list(self.agents.values())
+        if viewer is not None and agents:  # every agent's distance, tier and visibility in a few array operations
+            centres = np.array([agent.centre() for agent in agents])
+            d = centres - viewer.position
+            distances = np.sqrt(np.einsum("ij,ij->i", d, d))
+            new_tiers = lod.tiers_of(distances, np.array([-1 if a.tier is None else a.tier for a in agents]))
+            seen = lod.visible_of(viewer, centres)
+        for i, agent in enumerate(agents):
             if viewer is not None:
-                d = agent.centre() - viewer.position
-                agent.distance = float(math.sqrt(d @ d))
-                agent.tier = lod.tier(agent.distance, agent.tier)
-                visible = lod.visible(viewer, agent.centre())
+                agent.distance, agent.tier, visible = float(distances[i]), int(new_tiers[i]), bool(seen[i])
             else:
                 agent.distance, agent.tier, visible = 0.0, 0, True
             tier_name = tiers[agent.tier].name
