@@ -56,3 +56,17 @@ def test_an_outer_garment_already_outside_is_left_alone():
     push_out_of_inner(inside, sphere.vertices, sphere.faces, bind_layers(inside, sphere.vertices, sphere.faces),
                       clearance=0.01)
     assert np.linalg.norm(inside, axis=1).min() > 1.0  # every vertex ends outside the inner sphere
+
+
+def test_by_default_the_outer_garment_binds_over_the_inner_edge_and_is_pushed_when_that_edge_slides_under_it():
+    """A shirt's hem over the trousers' waist: bound at rest beyond the waist's edge (the default binds at the edges
+    too), it is pushed out once the hips swing the waist under it; further than 10 cm at rest, nothing binds."""
+    inner, inner_faces = grid(11, 0.5)  # the trousers, edge at |x|, |y| = 0.25
+    outer = np.array([[0.27, 0.0, 0.002], [0.0, 0.0, 0.02], [0.4, 0.0, 0.0]])  # over the edge, over, far off
+    binding = bind_layers(outer, inner, inner_faces)
+    np.testing.assert_array_equal(binding.outer, [0, 1])
+    slid = inner + [0.05, 0.0, 0.0]  # the waist slides 5 cm under the hem vertex
+    moved = outer.copy()
+    assert push_out_of_inner(moved, slid, inner_faces, binding, clearance=0.004) == 1
+    np.testing.assert_allclose(moved[0], [0.27, 0.0, 0.004], atol=1e-12)
+    np.testing.assert_array_equal(moved[1:], outer[1:])

@@ -6,11 +6,12 @@ included when it is published) and returns them ready for display, inner layers 
 - the body without the faces its garments cover (agentdress_ros.garment.coverage), the band it keeps under their
   edges sunk under the cloth (at rest, so it costs nothing per frame);
 - each garment pushed out of the garment of the next lower layer (agentdress_ros.engine.layering), through a
-  binding made once, between the two garments as they hang at the rest pose (vertex ids and weights stay valid for
-  every shape and pose: both garments follow the body);
+  binding made once per shape, between the two garments as they hang at the rest pose on that shape (vertex ids
+  and weights follow every pose: both garments follow the body);
 - each garment refined by `subdivision` rounds of Loop subdivision (agentdress_ros.engine.subdivision), applied
   last, after the engine's penetration handling and the layering.
-Coverage, layer bindings and subdivision matrices are cached per topology: a shape change reuses them.
+Coverage and subdivision matrices are cached per topology (a shape change reuses them), layer bindings per
+topology and shape.
 """
 from __future__ import annotations
 
@@ -32,14 +33,15 @@ __all__ = ["TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "dress_for_dis
 TEMPLATE_LAYERS = {"trousers": 1, "tshirt": 2, "longsleeve": 2}
 _CACHE: dict = {}
 _CACHE_SIZE = 32
+_SHAPE_CACHE: dict = {}  # per shape: kept apart, so that shapes coming and going never evict a topology's entries
 
 
-def _cached(key, make):
-    if key not in _CACHE:
-        if len(_CACHE) >= _CACHE_SIZE:
-            _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = make()
-    return _CACHE[key]
+def _cached(key, make, cache=_CACHE):
+    if key not in cache:
+        if len(cache) >= _CACHE_SIZE:
+            cache.pop(next(iter(cache)))
+        cache[key] = make()
+    return cache[key]
 
 
 def _base(model):
@@ -145,9 +147,11 @@ class DisplayModel:
         return out
 
 
-def dress_for_display(models: dict, body, layers: dict | None = None, subdivision: int = 0) -> dict:
+def dress_for_display(models: dict, body, layers: dict | None = None, subdivision: int = 0, beta=None) -> dict:
     """The node's models {name: model} ready for display (see the module docstring), ordered inner layers first and
-    the body last. layers: {garment: layer} overriding TEMPLATE_LAYERS; subdivision: 0, 1 or 2 rounds."""
+    the body last. layers: {garment: layer} overriding TEMPLATE_LAYERS; subdivision: 0, 1 or 2 rounds; beta: the
+    shape the models are fitted to (the layer bindings are made per shape)."""
+    shape_key = tuple(np.asarray(beta, dtype=np.float64).ravel().tolist()) if beta is not None else None
     layer_of = dict(TEMPLATE_LAYERS, **(layers or {}))
     garments = {n: _base(m) for n, m in models.items() if n != "body"}
     order = sorted(garments, key=lambda n: layer_of.get(n, 0))  # stable: equal layers keep their order
@@ -163,8 +167,8 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
                      None)
         binding = None
         if inner is not None:
-            binding = _cached(("layer",) + _topology_key(base) + _topology_key(inner), lambda: bind_layers(
-                _draped_rest(base, body), _draped_rest(inner.base, body), inner.base.faces))
+            binding = _cached(("layer", shape_key) + _topology_key(base) + _topology_key(inner), lambda: bind_layers(
+                _draped_rest(base, body), _draped_rest(inner.base, body), inner.base.faces), _SHAPE_CACHE)
         out[name] = DisplayModel(base, refine, inner, binding) if refine is not None or layered else base
     if "body" in models:
         out["body"] = _covered_body(models["body"], garments, body)

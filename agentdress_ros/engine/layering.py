@@ -4,8 +4,8 @@ Like the paper's penetration handling against the body (Eq. 10), the outer garme
 changes - to the inner garment's surface: each outer vertex that lies over the inner garment gets the triangle of
 the inner garment closest to it at rest (three vertex ids and barycentric weights). Every frame, the outer vertex
 is pushed out along the inner surface's interpolated normal until it is at least `clearance` outside the bound
-point: a fixed binding, no per-frame search. Outer vertices beyond the inner garment's open edges (a T-shirt's
-chest above the trousers' waist) are not bound.
+point: a fixed binding, no per-frame search. Outer vertices further than 10 cm from the inner garment at rest
+(a T-shirt's chest above the trousers' waist) are not bound.
 
 Pure array functions; shapes: V outer vertices, W inner vertices, G inner triangles, M bound outer vertices.
 """
@@ -36,9 +36,10 @@ class LayerBinding:
         return len(self.outer)
 
 
-def bind_layers(outer, inner, inner_faces, max_distance: float = 0.05, edge_margin: float = 0.01) -> LayerBinding:
+def bind_layers(outer, inner, inner_faces, max_distance: float = 0.1, edge_margin: float = 0.0) -> LayerBinding:
     """Bind outer vertices (V, 3) to the inner garment (W, 3), (G, 3) at rest: every outer vertex whose closest
-    inner point is within max_distance and at least edge_margin from the inner garment's open edges."""
+    inner point is within max_distance and at least edge_margin from the inner garment's open edges. The default
+    binds at the edges too: a shirt's hem over the trousers' waist, which slides under it as the hips swing."""
     from ..garment.coverage import boundary_distance
 
     outer = np.asarray(outer, dtype=np.float64)

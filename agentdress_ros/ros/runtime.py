@@ -103,7 +103,7 @@ def build_model_set(scene: SceneSpec, body, previous: ModelSet | None = None) ->
         models[spec.name], specs[spec.name] = model, spec
     if not models:
         clamped = bool(np.any((beta < 0) | (beta > 1)))
-    models = dress_for_display(models, body, dict(scene.layers), scene.display_subdivision)
+    models = dress_for_display(models, body, dict(scene.layers), scene.display_subdivision, beta)
     generation = previous.generation + 1 if previous is not None else 0
     return ModelSet(scene, models, specs, clamped, warnings, generation)
 
