@@ -68,6 +68,22 @@ def test_poke_through_counts_skin_outside_the_cloth_away_from_its_edges():
     np.testing.assert_array_equal(side, [1, -1, 0, 0])
 
 
+def test_skin_is_judged_against_the_cloth_facing_its_way_not_a_panel_it_meets_face_to_face():
+    """The inner arm in an armpit: its skin (outward normal -z) lies just outside the shirt's side panel, which faces
+    it (+z), and inside the sleeve's lower panel, which faces its way (-z) further off. It is under the sleeve."""
+    side_panel, side_faces = grid(11, 0.5, z=-0.005)  # faces +z, towards the skin
+    sleeve, sleeve_faces = grid(11, 0.5, z=-0.03, flip=True)  # faces -z, the skin's way
+    cloth = np.concatenate([side_panel, sleeve])
+    faces = np.concatenate([side_faces, sleeve_faces + len(side_panel)])
+    skin, down = np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, -1.0]])
+    assert surface_side(skin, cloth, faces, max_gap=0.05, edge_band=0.05)[0] == 1  # the nearest panel alone: "out"
+    assert surface_side(skin, cloth, faces, max_gap=0.05, edge_band=0.05, directions=down)[0] == -1
+    through = np.array([[0.0, 0.0, -0.04]])  # past the sleeve: out of the cloth that lies over it
+    assert surface_side(through, cloth, faces, max_gap=0.05, edge_band=0.05, directions=down)[0] == 1
+    alone = surface_side(skin, side_panel, side_faces, max_gap=0.05, edge_band=0.05, directions=down)
+    assert alone[0] == 0  # no cloth facing its way: nothing lies over it
+
+
 @pytest.fixture(scope="module")
 def tshirt(body):
     return make_garment("tshirt", body, n_vertices=1500)
@@ -108,3 +124,27 @@ def test_mhclo_delete_verts_are_read_and_hide_the_faces_they_touch(body, tmp_pat
     hidden = garment_covered_faces(Garment(), body)
     touches = np.isin(body.body_faces, deleted).any(axis=1)
     np.testing.assert_array_equal(hidden, touches)
+
+
+def test_faces_under_the_cloth_in_every_pose_of_a_range_are_hidden_and_no_others(body, tshirt):
+    """always_covered: the body faces inside the T-shirt's footprint in every pose of a range. Each of them lies under
+    cloth facing its way in each pose (no gap opens); a longer range hides no more."""
+    from agentdress_ros.body import REFERENCE_SHAPE
+    from agentdress_ros.display.models import always_covered, pose_range
+    from agentdress_ros.ros.garment_models import BodyModel, SkinnedGarmentModel
+
+    model = SkinnedGarmentModel(tshirt, body)
+    poses = pose_range(("walk",), every=12)
+    hidden = always_covered([model], body, poses[:1])
+    fewer = always_covered([model], body, poses)
+    assert fewer.sum() > 100 and not (fewer & ~hidden).any()
+    plain = BodyModel(body, REFERENCE_SHAPE)
+    for rotvecs in poses:
+        skin = np.asarray(plain.synthesize(rotvecs, np.zeros(3)), dtype=np.float64)
+        corners = skin[plain.faces[fewer]]
+        directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        cloth = np.asarray(model.synthesize(rotvecs, np.zeros(3)), dtype=np.float64)
+        under = surface_side(corners.mean(axis=1), cloth, model.faces, edge_band=0.0, directions=directions)
+        assert (under != 0).all()  # cloth over every hidden face: no gap opens
+    height = body.shape().vertices[body.body_faces].mean(axis=1)[:, 2]
+    assert not fewer[(height > 1.6) | (height < 0.9)].any()  # head; legs below the hem

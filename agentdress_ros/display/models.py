@@ -4,7 +4,8 @@ layered, a smooth mesh.
 `dress_for_display(models, body, layers, subdivision)` takes the node's models ({name: GarmentModel}, "body"
 included when it is published) and returns them ready for display, inner layers first:
 - the body without the faces its garments cover (agentdress_ros.garment.coverage), the band it keeps under their
-  edges sunk under the cloth (at rest, so it costs nothing per frame);
+  edges sunk under the cloth (at rest, so it costs nothing per frame), and without the faces that stay inside a
+  garment's footprint over a range of poses (always_covered: computed once per set of garments, nothing per frame);
 - each garment pushed out of the garment of the next lower layer (agentdress_ros.engine.layering), through a
   binding made once per shape, between the two garments as they hang at the rest pose on that shape (vertex ids
   and weights follow every pose: both garments follow the body);
@@ -23,14 +24,18 @@ from ..body import REFERENCE_SHAPE
 from ..engine.layering import bind_layers, push_out_of_inner
 from ..engine.subdivision import LoopSubdivision
 from ..garment.binding import vertex_normals
-from ..garment.coverage import MARGIN, cover_depth, faces_with_vertices, tuck_depth
+from ..garment.coverage import MARGIN, MAX_GAP, cover_depth, faces_with_vertices, tuck_depth
 from ..ros.garment_models import BodyModel
 
-__all__ = ["TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "dress_for_display", "garment_rest"]
+__all__ = ["POSE_RANGE", "TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "always_covered", "dress_for_display",
+           "garment_rest", "pose_range"]
 
 #: Layer of each template, inside out: trousers under a shirt worn outside them. A higher layer is pushed out of
 #: the next lower one; equal layers are not layered. Tucked in: give the trousers a layer above the shirt's.
 TEMPLATE_LAYERS = {"trousers": 1, "tshirt": 2, "longsleeve": 2}
+#: The range of poses over which body faces always under a garment are hidden too (pose_range, always_covered).
+POSE_RANGE = ("walk",)
+POSE_STEP = 3
 _CACHE: dict = {}
 _CACHE_SIZE = 32
 _SHAPE_CACHE: dict = {}  # per shape: kept apart, so that shapes coming and going never evict a topology's entries
@@ -175,6 +180,48 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
     return out
 
 
+def pose_range(motions=POSE_RANGE, every: int = POSE_STEP):
+    """(P, B, 3) rotation vectors: every `every`-th frame of one period of each procedural motion at 30 fps."""
+    from ..motion.procedural import make_motion
+
+    return np.concatenate([make_motion(name, fps=30.0).rotvecs[::every] for name in motions])
+
+
+def always_covered(garments, body, poses, hidden=None) -> np.ndarray:
+    """(F,) bool over body.body_faces: the faces whose centre lies inside a garment's footprint - under cloth facing
+    the skin's way, within MAX_GAP and at least MARGIN inside its open edges (coverage.surface_side) - in every pose
+    (P, B, 3) on the reference shape. Hiding them opens no gap over that range of poses: where such a face pokes out
+    of its garment, the cloth is right under it. garments: models (cloned here, the given ones are not touched);
+    hidden (F,): faces already hidden, not checked."""
+    from ..garment.coverage import boundary_distance, surface_side
+
+    if len(poses) == 0:
+        return np.zeros(len(body.body_faces), dtype=bool)
+    twins, edges = [], []
+    for garment in garments:
+        twin = _base(garment).clone()
+        twin.set_shape(REFERENCE_SHAPE)
+        twin.reset()
+        twins.append(twin)
+        edges.append(boundary_distance(garment_rest(twin, body), twin.faces))
+    plain = BodyModel(body, REFERENCE_SHAPE)
+    candidates = np.flatnonzero(~hidden) if hidden is not None else np.arange(len(plain.faces))
+    root = np.zeros(3)
+    for rotvecs in poses:
+        skin = np.asarray(plain.synthesize(rotvecs, root), dtype=np.float64)
+        corners = skin[plain.faces[candidates]]
+        centres = corners.mean(axis=1)
+        directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        covered = np.zeros(len(candidates), dtype=bool)
+        for twin, edge in zip(twins, edges):
+            cloth = np.asarray(twin.synthesize(rotvecs, root), dtype=np.float64)
+            covered |= surface_side(centres, cloth, twin.faces, MAX_GAP, MARGIN, directions, edge) != 0
+        candidates = candidates[covered]
+    out = np.zeros(len(plain.faces), dtype=bool)
+    out[candidates] = True
+    return out
+
+
 def _covered_body(model, garments: dict, body):
     key = tuple(sorted(_topology_key(g) for g in garments.values()))
     if getattr(model, "covered_by", None) == key:
@@ -185,4 +232,5 @@ def _covered_body(model, garments: dict, body):
         faces, depth = _coverage(garment, body)
         hidden |= faces
         sink = np.maximum(sink, depth)
+    hidden |= _cached(("posed",) + key, lambda: always_covered(list(garments.values()), body, pose_range(), hidden))
     return CoveredBodyModel(body, model.shape.beta, ~hidden, sink, key)

@@ -4,8 +4,9 @@ The models are those the node runs for `make run` (T-shirt and trousers from the
 published), over the demo walk at 30 fps and a shape sweep (the demo's --shape-sweep shapes), for each display
 refinement asked:
 - skin through the cloth: drawn body faces whose centre lies outside a garment where it covers the body (the
-  closest cloth point at least `edge_band` inside the garment's open edges), with the covered faces left out and
-  the kept band sunk (as published), and with every body face drawn (before);
+  closest cloth facing the skin's way at least `edge_band` inside the garment's open edges), with the covered
+  faces left out and the kept band sunk (as published), and with every body face drawn (before);
+- gaps: body faces left out whose centre no garment lies over (no cloth facing the skin's way within 6 cm);
 - layering: the share of T-shirt vertices inside the trousers where the trousers cover them, with and without the
   push out of the trousers;
 - cost per frame (median, one thread): the engine's synthesis, the layering push, the refinement.
@@ -53,7 +54,8 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             model_set = _models(body, databases, subdivision, layered)
             plain = BodyModel(body)  # before: every face drawn, nothing sunk
             every_face = plain.faces
-            counts = {"drawn_poking": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0}
+            counts = {"drawn_poking": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0,
+                      "gaps": 0}
             timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}
             for beta in shapes:
                 model_set = build_model_set(replace(model_set.scene, beta=beta), body, model_set)
@@ -75,6 +77,8 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                     skin = out["body"]
                     plain_skin = np.array(plain.synthesize(rotvecs, root), dtype=np.float64) if layered else None
                     drawn = models["body"].faces
+                    if layered:  # the body is the same without layering
+                        counts["gaps"] += _gaps(skin, models["body"], every_face, out, models)
                     for name in ("tshirt", "trousers"):
                         garment, faces = out[name], models[name].faces
                         counts["drawn_poking"] += int(poke_through(skin, drawn, garment, faces,
@@ -95,12 +99,30 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                 "frames": n,
                 "drawn_body_faces_poking_per_frame": counts["drawn_poking"] / n,
                 "all_body_faces_poking_per_frame": counts["poking_all_faces"] / n if layered else None,
+                "hidden_body_faces_without_cloth_per_frame": counts["gaps"] / n if layered else None,
                 "tshirt_vertices_inside_trousers_pct": 100.0 * counts["outer_inside_inner"] / counts["outer_vertices"],
                 "garment_vertices": {g: models[g].n_vertices for g in ("tshirt", "trousers")},
                 "body_faces_drawn": len(models["body"].faces), "body_faces": len(every_face),
                 "ms_per_garment_frame_p50": {k: float(np.median(v)) for k, v in timing.items()},
             }
     return report
+
+
+def _gaps(skin, body_model, every_face, out: dict, models: dict) -> int:
+    """How many of the body's faces left out (every_face (F, 3) less the drawn ones, as body_model's vertices skin
+    (N, 3)) have no garment over their centre: the holes a viewer could see."""
+    from ..garment.coverage import surface_side
+
+    drawn = {tuple(f) for f in np.sort(body_model.faces, axis=1).tolist()}
+    hidden = every_face[[tuple(f) not in drawn for f in np.sort(every_face, axis=1).tolist()]]
+    corners = skin[hidden]
+    centres = corners.mean(axis=1)
+    directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    covered = np.zeros(len(hidden), dtype=bool)
+    for name, model in models.items():
+        if name != "body":
+            covered |= surface_side(centres, out[name], model.faces, edge_band=0.0, directions=directions) != 0
+    return int((~covered).sum())
 
 
 def main(argv=None) -> int:

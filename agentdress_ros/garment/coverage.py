@@ -51,9 +51,10 @@ def boundary_distance(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.minimum(dijkstra(graph, directed=False, indices=border, min_only=True), NO_EDGE)
 
 
-def _closest(points, vertices, faces, max_gap):
+def _closest(points, vertices, faces, max_gap, edges=None):
     """Closest points of the surface (V, 3), (G, 3) to the points (P, 3) within about max_gap: (candidate ids (C,),
-    closest (C, 3), distance (C,), face ids (C,), geodesic distance of the closest point to the open edges (C,))."""
+    closest (C, 3), distance (C,), face ids (C,), geodesic distance of the closest point to the open edges (C,),
+    the surface's trimesh). edges: boundary_distance of the surface, if known."""
     near = cKDTree(vertices).query(points, distance_upper_bound=max_gap + 0.05)[0]
     candidates = np.flatnonzero(np.isfinite(near))
     mesh = trimesh.Trimesh(vertices, faces, process=False)
@@ -63,7 +64,8 @@ def _closest(points, vertices, faces, max_gap):
     corners = faces[face_ids]
     barycentric = np.clip(trimesh.triangles.points_to_barycentric(vertices[corners], closest), 0.0, 1.0)
     barycentric /= barycentric.sum(axis=1, keepdims=True)
-    edge_distance = (boundary_distance(vertices, faces)[corners] * barycentric).sum(axis=1)
+    edges = boundary_distance(vertices, faces) if edges is None else edges
+    edge_distance = (edges[corners] * barycentric).sum(axis=1)
     return candidates, closest, distance, face_ids, edge_distance, mesh
 
 
@@ -131,15 +133,46 @@ def garment_covered_faces(garment, body, shape=None, margin: float = MARGIN, max
     return covered_faces(shape.vertices, body.body_faces, rest, garment.faces, margin, max_gap)
 
 
-def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: float = MARGIN) -> np.ndarray:
+def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: float = MARGIN,
+                 directions=None, edges=None) -> np.ndarray:
     """(P,) int8 side of each point (P, 3) relative to an open surface (V, 3), (G, 3) whose normals face outwards:
     +1 outside, -1 inside, 0 where the surface does not cover the point - its closest surface point is further than
-    max_gap, or within edge_band (geodesically) of an open edge: the band kept drawn under hems and cuffs."""
+    max_gap, or within edge_band (geodesically) of an open edge: the band kept drawn under hems and cuffs.
+
+    directions (P, 3): the points' own outward normals (skin, an outer garment). Then a point is judged against the
+    closest part of the surface facing its way (positive dot product of the normals): the surface that lies over
+    it, not a panel it meets face to face (the inner arm against a shirt's side in the armpit lies outside the side
+    panel and inside its sleeve). edges (V,): the surface's boundary_distance, if known (it changes little with
+    the pose)."""
     points = np.asarray(points, dtype=np.float64)
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    edges = boundary_distance(vertices, faces) if edges is None else edges
     out = np.zeros(len(points), dtype=np.int8)
-    ids, closest, distance, face_ids, edge_distance, mesh = _closest(
-        points, np.asarray(vertices, dtype=np.float64), faces, max_gap)
-    side = np.where(((points[ids] - closest) * mesh.face_normals[face_ids]).sum(axis=1) > 0, 1, -1)
+    ids, closest, distance, face_ids, edge_distance, mesh = _closest(points, vertices, faces, max_gap, edges)
+    normals = mesh.face_normals
+    if directions is not None and len(ids):
+        own = np.asarray(directions, dtype=np.float64)[ids]
+        facing = np.flatnonzero((normals[face_ids] * own).sum(axis=1) <= 0)
+        if len(facing):
+            centres = cKDTree(vertices[faces].mean(axis=1))
+            reach = max_gap + np.linalg.norm(vertices[faces] - vertices[faces].mean(axis=1, keepdims=True),
+                                             axis=2).max()
+            for k in facing:
+                candidates = np.array(centres.query_ball_point(points[ids[k]], reach), dtype=np.int64)
+                candidates = candidates[normals[candidates] @ own[k] > 0]
+                if len(candidates) == 0:
+                    distance[k] = np.inf
+                    continue
+                corners = vertices[faces[candidates]]
+                near = trimesh.triangles.closest_point(corners, np.repeat(points[ids[k]][None], len(corners), 0))
+                best = int(np.argmin(np.linalg.norm(near - points[ids[k]], axis=1)))
+                closest[k], face_ids[k] = near[best], candidates[best]
+                distance[k] = np.linalg.norm(near[best] - points[ids[k]])
+                weights = np.clip(trimesh.triangles.points_to_barycentric(corners[best][None], near[best][None])[0],
+                                  0.0, 1.0)
+                edge_distance[k] = edges[faces[candidates[best]]] @ (weights / weights.sum())
+    side = np.where(((points[ids] - closest) * normals[face_ids]).sum(axis=1) > 0, 1, -1)
     out[ids] = np.where((distance <= max_gap) & (edge_distance >= edge_band), side, 0)
     return out
 
@@ -147,6 +180,9 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
 def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max_gap: float = MAX_GAP,
                  edge_band: float = MARGIN) -> np.ndarray:
     """(F,) bool: body triangles (F, 3) whose centre lies outside the garment's surface where the garment covers it
-    (surface_side). The check behind "no skin through the cloth", on posed meshes of any frame."""
-    centres = np.asarray(body_vertices, dtype=np.float64)[body_faces].mean(axis=1)
-    return surface_side(centres, garment_vertices, garment_faces, max_gap, edge_band) > 0
+    (surface_side, judged against the cloth facing the skin's way). The check behind "no skin through the cloth",
+    on posed meshes of any frame."""
+    body_vertices = np.asarray(body_vertices, dtype=np.float64)
+    corners = body_vertices[body_faces]
+    directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return surface_side(corners.mean(axis=1), garment_vertices, garment_faces, max_gap, edge_band, directions) > 0
