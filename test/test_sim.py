@@ -4,6 +4,7 @@ The drape tests need `newton` (pip install newton==1.8.0, the project's `build` 
 the first run also pays warp's one-time kernel compile (~30 s, cached in ~/.cache/warp).
 """
 import importlib.util
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -252,3 +253,25 @@ def test_sequence_pack_restores_the_cloth_from_rest_frame_pca(body, swing_sequen
         rest = pack["rest"].astype(float) + pack["offsets"][f]
         posed = linear_blend_skinning(rest, garment.skin_indices, garment.skin_weights, transforms, np.empty_like(rest))
         assert np.abs(posed - truth["positions"][f]).max() < 5e-4
+
+
+@needs_newton
+def test_a_clip_packed_part_way_is_kept_and_simulated_again(body, swing_sequences, tmp_path):
+    import shutil
+
+    from agentdress_ros.build.sequences import clips_to_simulate, load_sequence_pack, pack_sequences
+
+    folder, garment, motion, _ = swing_sequences
+    root = tmp_path / "runs"
+    shutil.copytree(folder / garment.name / "whole", root / garment.name / "whole")
+    part = root / garment.name / "part"
+    part.mkdir()
+    shutil.copy(folder / garment.name / "whole" / "sequence.json", part)
+    shutil.copy(folder / garment.name / "whole" / "chunk_0000.npz", part)  # stopped after its first chunk
+    report = pack_sequences(root, garment.name, garment.n_vertices, tmp_path / "pack.npz", components=8)
+    assert report["frames"] == 7 + 3 and report["clips_part_way"] == ["part"]
+    pack = load_sequence_pack(tmp_path / "pack.npz")
+    assert pack["clip_complete"].tolist() == [False, True] and pack["clips"].tolist() == ["part", "whole"]
+    clips = [Path("mocap/whole.bvh"), Path("mocap/part.bvh"), Path("mocap/new.bvh")]
+    assert clips_to_simulate(clips, tmp_path / "pack.npz", tmp_path / "elsewhere") == clips[1:]
+    assert clips_to_simulate(clips, tmp_path / "pack.npz", root / garment.name) == clips  # folders under way

@@ -3,8 +3,9 @@
     agentdress sequences --garment tshirt --clips ../shared/mocap/cmu/*.bvh --out out/sequences [--workers 1]
     agentdress sequences --garment tshirt --clips ... --out out/sequences --pack data/tshirt_sequences.npz
 
-With --pack, clips the pack already holds are not simulated again (unless their chunk folder is there), and the
-new pack keeps them beside the clips simulated here: the work of several machines or days adds up in one file.
+With --pack, clips the pack already holds whole are not simulated again (unless their chunk folder is there), and
+the new pack keeps them beside the clips simulated here: the work of several machines or days adds up in one file.
+A clip packed part-way (`clip_complete` false) keeps its frames in the pack until a later run simulates it whole.
 
 Each clip runs as one job (`sim.sequence.simulate_sequence`, checkpointed every second of motion) in
 `<out>/<garment>/<clip>/`; a rerun continues every clip after its last complete chunk. Test clips of
@@ -117,7 +118,7 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     skin_w = garment.skin_weights.astype(np.float64)
     garment_root = Path(root) / garment_name
     folders = sorted(p for p in garment_root.iterdir() if any(p.glob("chunk_*.npz"))) if garment_root.is_dir() else []
-    offsets, poses, roots, velocities, clip_ids, frame_ids, names = [], [], [], [], [], [], []
+    offsets, poses, roots, velocities, clip_ids, frame_ids, names, complete = [], [], [], [], [], [], [], []
     cloth_speed, body_speed = [], []
     out = Path(out)
     if out.is_file():  # clips packed before (simulated elsewhere or earlier) and not simulated here stay in
@@ -127,6 +128,7 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
                 continue
             rows = previous["clip"] == c
             names.append(str(name))
+            complete.append(bool(previous["clip_complete"][c]) if "clip_complete" in previous else True)
             offsets.extend(previous["offsets"][rows].reshape(int(rows.sum()), -1).astype(np.float64))
             for target, field in ((poses, "rotvecs"), (roots, "root_translation"), (velocities, "root_velocity"),
                                   (cloth_speed, "cloth_speed"), (body_speed, "body_speed"), (frame_ids, "frame")):
@@ -137,6 +139,8 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     for folder in folders:
         data = load_sequence(folder)
         names.append(folder.name)
+        planned = json.loads((folder / "sequence.json").read_text())["chunks"]
+        complete.append(len(list(folder.glob("chunk_*.npz"))) >= planned)
         c = len(names) - 1
         for f in range(0, len(data["frames"]), max(1, inside_every)):
             bodies, _ = posed_surfaces(body, garment, shape, data["rotvecs"][f:f + 1].astype(np.float64),
@@ -175,11 +179,13 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
             root_velocity=np.concatenate(velocities).astype(np.float32),
             cloth_speed=np.concatenate(cloth_speed).astype(np.float32),
             body_speed=np.concatenate(body_speed).astype(np.float32),
-            clip=np.concatenate(clip_ids), frame=np.concatenate(frame_ids), clips=np.array(names))
+            clip=np.concatenate(clip_ids), frame=np.concatenate(frame_ids), clips=np.array(names),
+            clip_complete=np.array(complete, dtype=bool))
     out.parent.mkdir(parents=True, exist_ok=True)
     partial.replace(out)
     explained = float((singular[:k] ** 2).sum() / (singular ** 2).sum())
-    return {"pack": str(out), "bytes": out.stat().st_size, "clips": len(names), "frames": len(matrix),
+    return {"pack": str(out), "bytes": out.stat().st_size, "clips": len(names),
+            "clips_part_way": [n for n, done in zip(names, complete) if not done], "frames": len(matrix),
             "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean()),
             "rest_frame_error_max_m": float(error.max()),
             "inside_per_frame": dict(zip(("all", "in_self_overlap", "truly_inside"),
@@ -187,6 +193,17 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
             "inside_frames_tested": len(inside),
             "max_cloth_speed": float(np.concatenate(cloth_speed).max()),
             "max_body_speed": float(np.concatenate(body_speed).max())}
+
+
+def clips_to_simulate(clips, pack, folder) -> list:
+    """The clips a run still has to simulate: all but those `pack` holds whole, unless their chunk folder is in
+    `folder` (a run under way). A clip packed part-way is simulated again, whole."""
+    if not Path(pack).is_file():
+        return list(clips)
+    with np.load(pack) as data:
+        whole = data["clip_complete"] if "clip_complete" in data.files else np.ones(len(data["clips"]), bool)
+        done = {str(name) for name, complete in zip(data["clips"], whole) if complete}
+    return [c for c in clips if Path(c).stem not in done or (Path(folder) / Path(c).stem).is_dir()]
 
 
 def load_sequence_pack(path) -> dict:
@@ -218,10 +235,8 @@ def main(argv=None) -> int:
     settings = asdict(SequenceSettings())
     settings.update(json.loads(args.settings) if args.settings else {})
     clips = check_training_clips(args.clips)
-    if args.pack and Path(args.pack).is_file():  # clips in the pack are finished: not simulated again
-        with np.load(args.pack) as data:
-            packed = {str(name) for name in data["clips"]}
-        clips = [c for c in clips if c.stem not in packed or (Path(args.out) / args.garment / c.stem).is_dir()]
+    if args.pack:
+        clips = clips_to_simulate(clips, args.pack, Path(args.out) / args.garment)
     # shortest clips first: the most finished clips early, whatever the time available
     clips.sort(key=lambda p: p.stat().st_size)
     jobs = [SequenceJob(str(c), args.garment, args.vertices, tuple(REFERENCE_SHAPE), str(Path(args.out) /
