@@ -219,12 +219,11 @@ class RegressorPoseModel:
         self.biases = [np.asarray(b, dtype=np.float64) for b in reg.biases]
         self.relu = reg.activation == "relu"
         n_vertices = reg.mean.shape[0]
-        # the output layer's standardisation folded into the basis: position = mean + sum_g y_g (scale_g basis_g)
-        basis = np.asarray(reg.basis, dtype=np.float64) * np.asarray(reg.coefficient_scale, dtype=np.float64)[:, None,
-                                                                                                             None]
-        mean = np.asarray(reg.mean, dtype=np.float64) + np.einsum("g,gvk->vk", np.asarray(reg.coefficient_mean,
-                                                                                          dtype=np.float64),
-                                                                 np.asarray(reg.basis, dtype=np.float64))
+        # the output's standardisation folded into basis and mean: position = mean' + sum_g y_g (scale_g basis_g)
+        unit = np.asarray(reg.basis, dtype=np.float64)
+        basis = unit * np.asarray(reg.coefficient_scale, dtype=np.float64)[:, None, None]
+        mean = np.asarray(reg.mean, dtype=np.float64) + np.einsum("g,gvk->vk", reg.coefficient_mean.astype(np.float64),
+                                                                 unit)
         self.basis = np.ascontiguousarray(np.transpose(basis, (0, 2, 1)).reshape(len(basis), 3 * n_vertices),
                                           dtype=context.dtype)  # (G, 3V): x row, y row, z row
         self.mean = np.ascontiguousarray(mean.T.reshape(-1), dtype=context.dtype)
