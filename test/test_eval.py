@@ -153,3 +153,31 @@ def test_node_default_beats_the_skinned_baseline_on_the_shipped_ground_truth(bod
     (base_ci, default_ci), _ = bootstrap_intervals([r["error_per_case_cm"] for r in results])
     assert results[1]["error_mean_cm"] < 0.8 * results[0]["error_mean_cm"], results
     assert default_ci[1] < base_ci[0], (base_ci, default_ci)
+
+
+def test_pose_models_at_beta0_rerun_from_the_shipped_ground_truth(body, tmp_path):
+    """The table at beta0 reruns from the packed beta0 drapes (no drape simulated) and gives the shipped report's
+    numbers: each pose model alone against newton drapes of the held-out poses at the reference shape."""
+    import shutil
+
+    from agentdress_ros.engine import read_database
+    from agentdress_ros.evaluate.beta0 import held_out_beta0
+    from agentdress_ros.evaluate.evaluate import beta0_report
+    from agentdress_ros.evaluate.testset import HeldOutConfig
+    from agentdress_ros.garment import make_garment
+
+    pack = tmp_path / "ground_truth_beta0.npz"
+    shutil.copy(ROOT / "docs" / "eval" / "ground_truth_beta0.npz", pack)
+    clips = [shared_path("mocap", "cmu", f"{name}.bvh") for name in HELD_OUT_CLIPS]
+    db = read_database(DATABASE)
+    garment = make_garment(db.garment, body, db.n_vertices)
+    drapes, poses, labels = held_out_beta0(db, body, garment, HeldOutConfig(clips=clips), tmp_path / "cache",
+                                           workers=0, progress=False, pack=pack)
+    assert drapes.shape == (10, db.n_vertices, 3) and len(labels) == 10
+    rows = {r["name"]: r for r in beta0_report(db, body, poses, drapes)}
+    shipped = {r["name"]: r for r in json.loads((ROOT / "docs" / "eval" / "report.json").read_text())["beta0"]}
+    assert set(rows) == set(shipped) and "regressor pose model alone" in rows
+    for name, row in rows.items():
+        assert abs(row["error_mean_cm"] - shipped[name]["error_mean_cm"]) < 0.01, name
+    # the lbs pose model (the skinned beta0 garment) is the worst of them at beta0
+    assert rows["lbs pose model alone"]["error_mean_cm"] > rows["examples pose model alone"]["error_mean_cm"]
