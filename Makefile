@@ -13,7 +13,7 @@ RUNTIME_STAMP := $(VENV)/.stamp-runtime
 TEST_STAMP := $(VENV)/.stamp-test
 WEB_STAMP := web/node_modules/.stamp-npm
 
-.PHONY: setup setup-test test run bench bench-node web
+.PHONY: setup setup-test test run bench bench-node web regressor
 
 setup: $(RUNTIME_STAMP) $(WEB_STAMP)
 
@@ -67,3 +67,11 @@ bench: setup
 # End-to-end node benchmark over real DDS (JSON on stdout): latency, rate, dropped ticks, CPU at 90 Hz.
 bench-node: setup
 	$(BIN)/python -m agentdress_ros.evaluate.bench_node
+
+# Retrain the regressor pose model of both shipped databases from their sequence packs (a no-op when they are up to
+# date), then rerun both trade tables from the packed ground truth.
+regressor: setup-test
+	$(BIN)/agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+	$(BIN)/agentdress regressor --database data/trousers_default.h5 --pack data/trousers_sequences.npz
+	$(BIN)/agentdress eval --database data/tshirt_default.h5 --out docs/eval --workers 0 --quiet
+	$(BIN)/agentdress eval --database data/trousers_default.h5 --out docs/eval/trousers --workers 0 --quiet
