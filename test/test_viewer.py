@@ -366,3 +366,93 @@ def test_make_run_screenshot(browser, tmp_path):
         context.close()
     finally:
         assert run.stop(grace=60.0) == 0, run.output()[-3000:]
+
+
+@pytest.mark.skipif(not os.environ.get("AGENTDRESS_PICTURES"), reason="set AGENTDRESS_PICTURES=<folder> to take "
+                                                                      "the README's pictures of `make run`")
+def test_walk_gif(browser, tmp_path):
+    """The README's animated GIF: the node as `make run` starts it (shipped databases, body published) and the
+    viewer, fed one pose at a time from this process - a whole period of the procedural walk, every 2nd frame at
+    30 fps - each screenshot taken once the page has that pose's frame, so the loop plays the walk at its own speed
+    however slowly the page draws in software."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    from agentdress_ros.motion.joint_names import JOINT_NAMES
+    from agentdress_ros.ros.demo import load_clip
+
+    folder = Path(os.environ["AGENTDRESS_PICTURES"])
+    folder.mkdir(parents=True, exist_ok=True)
+    domain = DOMAIN_ID + 9
+    env = ros_env(domain, str(tmp_path / "ros_log"))
+    databases = [f"{g}:{ROOT / 'data' / f'{g}_default.h5'}" for g in ("tshirt", "trousers")]
+    children = {
+        "node": ChildProcess(node_args({"garments": ["tshirt", "trousers"], "garment_databases": databases,
+                                        "publish_body": True}), env, tmp_path / "node.log"),
+        "viewer": ChildProcess([sys.executable, "-m", "agentdress_ros.ros.viewer", "--port", "0", "--cert-dir",
+                                str(tmp_path / "tls")], env, tmp_path / "viewer.log"),
+    }
+    motion = load_clip("walk", 30.0)
+    step = 2
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = rclpy.create_node("agentdress_gif", context=context)
+    publisher = node.create_publisher(JointState, "joint_states",
+                                      QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+    shots = []
+    try:
+        url = _viewer_url(children["viewer"])
+
+        def publish(index: int) -> float:
+            msg = JointState()
+            stamp = node.get_clock().now()
+            msg.header.stamp = stamp.to_msg()
+            msg.header.frame_id = "agent"
+            msg.name = list(JOINT_NAMES)
+            msg.position = np.concatenate([motion.rotvecs[index].reshape(-1), np.zeros(3)]).tolist()
+            publisher.publish(msg)
+            return stamp.nanoseconds * 1e-9
+
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:  # until the node answers: meshes with frames
+            publish(0)
+            state = _state(url)
+            if {m["garment"] for m in state.values()} >= {"body", "tshirt", "trousers"} and all(
+                    m["frames"] > 0 for m in state.values()):
+                break
+            time.sleep(0.5)
+        page_context = browser.new_context(ignore_https_errors=True, viewport={"width": 640, "height": 720})
+        page = page_context.new_page()
+        page.goto(url)
+        page.wait_for_function("agentdress.framesReceived > 1", timeout=120_000)
+        page.evaluate("document.getElementById('panel').style.display = 'none'")
+        for index in range(0, len(motion.rotvecs), step):
+            for _ in range(100):  # the same pose until the viewer holds its frame for every mesh
+                stamp = publish(index)
+                time.sleep(0.1)
+                if all(abs((m["stamp"] or 0) - stamp) < 1e-6 for m in _state(url).values()):
+                    break
+            page.wait_for_timeout(800)  # the worker hands it over; the next drawn frame shows it
+            shots.append(Image.open(io.BytesIO(page.screenshot(timeout=180_000))).convert("RGB"))
+        page_context.close()
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        codes = {name: child.stop() for name, child in children.items()}
+    assert all(code == 0 for code in codes.values()), {n: (c, children[n].output()[-2000:]) for n, c in codes.items()}
+    gif = folder / "walk.gif"
+    _write_gif(gif, shots, 1000 * step / motion.fps)
+    assert 0 < gif.stat().st_size < 2_000_000 and Image.open(gif).n_frames == len(shots)
+    changed = (np.abs(np.asarray(shots[0], np.int16) - np.asarray(shots[len(shots) // 2], np.int16)).sum(axis=2) > 30)
+    assert changed.mean() > 0.003  # the agent walks
+
+
+def _write_gif(path: Path, shots: list, frame_ms: float, width: int = 400):
+    """An animated GIF of screenshots, each shown frame_ms, scaled to `width` pixels, on one 64-colour palette."""
+    size = (width, round(shots[0].height * width / shots[0].width))
+    scaled = [shot.resize(size, Image.LANCZOS) for shot in shots]
+    palette = scaled[0].quantize(colors=64, method=Image.Quantize.MEDIANCUT)
+    frames = [frame.quantize(palette=palette, dither=Image.Dither.NONE) for frame in scaled]
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=round(frame_ms), loop=0, optimize=True)
