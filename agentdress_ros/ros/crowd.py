@@ -28,6 +28,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState, PointCloud2
 from shape_msgs.msg import Mesh
 from std_msgs.msg import Float32MultiArray
@@ -44,7 +45,8 @@ from .params import ParameterError, validate
 QUIET_SUBSCRIPTION = SubscriptionEventCallbacks(use_default_callbacks=False)
 QUIET_PUBLISHER = PublisherEventCallbacks(use_default_callbacks=False)
 TOPICS = ("joint_states", "body_shape")  # an agent's inputs, in the order of its entity's "subs"
-SHAPE_POLL_TICKS = 9  # each agent's body_shape is looked at every 9th tick
+SHAPE_POLL_TICKS = 9  # each agent's body_shape (and, when not dressed, its pose) is looked at every 9th tick
+MAX_PENDING = 16  # serialized poses kept per agent between parses (the newest)
 
 
 def _never_called(msg):
@@ -106,6 +108,7 @@ class Crowd:
         self.inputs = Node(f"{node.get_name()}_inputs", namespace=node.get_namespace(), context=node.context,
                            enable_rosout=False, start_parameter_services=False)
         self._shape_turn = 0
+        self.scene.before_dress = self._parse_pending
         self.clouds: dict[tuple, PointCloud2] = {}
         self.topology: dict[str, dict] = {}  # agent -> {garment: Mesh}, made on the worker
         self.viewer_sub = None
@@ -167,10 +170,12 @@ class Crowd:
         """The agent's input subscriptions, on the node the executor never waits on (see `poll`)."""
         inputs = self.inputs
         subs = [inputs.create_subscription(JointState, f"{name}/joint_states", _never_called,
-                                           self.node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION),
+                                           self.node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION,
+                                           raw=True),
                 inputs.create_subscription(Float32MultiArray, f"{name}/body_shape", _never_called,
                                            self.node._qos("shape"), event_callbacks=QUIET_SUBSCRIPTION)]
-        self.entities[name] = {"subs": subs, "points": {}, "mesh": {}, "installed": None}
+        self.entities[name] = {"subs": subs, "handles": [sub.handle for sub in subs], "pending": [],
+                               "points": {}, "mesh": {}, "installed": None}
 
     def _prepare(self, agent):
         """Worker thread: topology messages of a built agent."""
@@ -213,28 +218,50 @@ class Crowd:
         self.topology.pop(name, None)
 
     # ---- inputs ---------------------------------------------------------------------------------------------
-    def _drain(self, name: str, which: int, on_message) -> None:
-        """Take every message waiting on agent `name`'s subscription `which` (0 joint states, 1 body shape), oldest
-        first (partial JointStates add up), and hand each to `on_message(name, msg)` (None: drop them)."""
-        entity = self.entities.get(name)
-        if entity is None:
-            return
-        sub = entity["subs"][which]
-        handle = self.node._guarded(f"{name}/{TOPICS[which]}", on_message)
-        with sub.handle:
-            while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
-                if on_message is not None:
-                    handle(name, taken[0])
+    def _take(self, entity: dict, which: int) -> list:
+        """Every message waiting on an agent's subscription `which` (0 joint states, serialized; 1 body shape),
+        oldest first."""
+        sub, handle = entity["subs"][which], entity["handles"][which]
+        taken = []
+        with handle:
+            while (message := handle.take_message(sub.msg_type, sub.raw)) is not None:
+                taken.append(message[0])
+        return taken
 
     def poll(self):
-        """Tick: every agent's waiting poses (dropped where the agent's arrival subscription has them already),
-        and a ninth of the agents' body shapes (each looked at rate_hz / 9)."""
-        for name, entity in list(self.entities.items()):
-            self._drain(name, 0, None if "arrival" in entity else self._on_joint_state)
-        names = sorted(self.entities)
-        for name in names[self._shape_turn % SHAPE_POLL_TICKS::SHAPE_POLL_TICKS]:
-            self._drain(name, 1, self._on_shape)
+        """Tick, before the scene decides: take every agent's waiting poses, serialized. They are parsed only when
+        the agent is dressed (`_parse_pending`, from the scene) or, for the others, every SHAPE_POLL_TICKS-th tick
+        so that distances and visibility stay current; that tick also looks at the agent's body shapes. Poses of
+        an agent with an arrival reader are dropped here: that reader has them."""
+        counts = self.node.stats.counts
+        turn = self._shape_turn % SHAPE_POLL_TICKS
+        for i, (name, entity) in enumerate(sorted(self.entities.items())):
+            raw = self._take(entity, 0)
+            if raw and "arrival" not in entity:
+                counts["joint_states_received"] += len(raw)
+                pending = entity["pending"]
+                pending.extend(raw)
+                del pending[:-MAX_PENDING]
+                agent = self.scene.agents.get(name)
+                if agent is not None:
+                    agent.dirty = True  # a pose to dress (parsed as it is dressed)
+            if i % SHAPE_POLL_TICKS == turn:
+                if entity["pending"]:
+                    self._parse_pending(self.scene.agents.get(name))
+                shape = self.node._guarded(f"{name}/body_shape", self._on_shape)
+                for msg in self._take(entity, 1):
+                    shape(name, msg)
         self._shape_turn += 1
+
+    def _parse_pending(self, agent):
+        """The agent's waiting serialized poses into its pose, oldest first (partial JointStates add up)."""
+        entity = None if agent is None else self.entities.get(agent.name)
+        if entity is None or not entity["pending"]:
+            return
+        pending, entity["pending"] = entity["pending"], []
+        accept = self.node._guarded(f"{agent.name}/joint_states", self._on_joint_state)
+        for raw in pending:
+            accept(agent.name, deserialize_message(raw, JointState))
 
     def sync_arrival(self):
         """After a tick: near agents in view get a second JointState subscription on the spun node, whose
@@ -257,6 +284,10 @@ class Crowd:
                 node.destroy_subscription(entity.pop("arrival"))
 
     def _on_arrival(self, name: str, msg: JointState):
+        self.node.stats.counts["joint_states_received"] += 1
+        entity = self.entities.get(name)
+        if entity is not None:
+            entity["pending"].clear()  # taken by the tick before this reader matched: older than this pose
         self._on_joint_state(name, msg)
         agent = self.scene.agents.get(name)
         if agent is not None and time.monotonic() - agent.last_dressed >= 0.5 / self.config["rate_hz"]:
@@ -264,7 +295,6 @@ class Crowd:
 
     def _on_joint_state(self, name: str, msg: JointState):
         node = self.node
-        node.stats.counts["joint_states_received"] += 1
         agent = self.scene.agents.get(name)
         if agent is None:
             return

@@ -201,6 +201,7 @@ class Scene:
         self.body, self.config = body, config
         self.library = library if library is not None else GarmentLibrary(body)
         self.pose_factory = pose_factory
+        self.before_dress = None  # called with an agent just before it is dressed (e.g. to parse waiting input)
         self.agents: dict[str, Agent] = {}
         self.viewer: Viewer | None = None
         self.ticks = 0
@@ -397,6 +398,8 @@ class Scene:
     def _dress(self, agent: Agent, level: int, tier: int, publish, now_ns: int) -> float:
         """Dress and publish one agent at `level`; returns the ms it took (recorded as that level's cost)."""
         t0 = time.perf_counter()
+        if self.before_dress is not None:
+            self.before_dress(agent)
         version = agent.pose.version
         frames = agent.dress(level)
         if publish is not None:
