@@ -34,6 +34,7 @@ from shape_msgs.msg import Mesh
 from std_msgs.msg import Float32MultiArray
 
 from ..scene import AgentSpec, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tiers
+from ..motion.joint_names import JOINT_NAMES
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .messages import make_mesh, make_point_cloud, set_cloud_vertices
 from .params import ParameterError, validate
@@ -254,14 +255,18 @@ class Crowd:
         self._shape_turn += 1
 
     def _parse_pending(self, agent):
-        """The agent's waiting serialized poses into its pose, oldest first (partial JointStates add up)."""
+        """The agent's waiting serialized poses into its pose: the newest, when it names every joint (the older
+        ones could not change the result), else all of them oldest first (partial JointStates add up)."""
         entity = None if agent is None else self.entities.get(agent.name)
         if entity is None or not entity["pending"]:
             return
         pending, entity["pending"] = entity["pending"], []
         accept = self.node._guarded(f"{agent.name}/joint_states", self._on_joint_state)
-        for raw in pending:
-            accept(agent.name, deserialize_message(raw, JointState))
+        newest = deserialize_message(pending[-1], JointState)
+        if len(newest.name) < len(JOINT_NAMES):  # a partial update: the older ones count too (parsing is the cost)
+            for raw in pending[:-1]:
+                accept(agent.name, deserialize_message(raw, JointState))
+        accept(agent.name, newest)
 
     def sync_arrival(self):
         """After a tick: near agents in view get a second JointState subscription on the spun node, whose
