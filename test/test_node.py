@@ -142,10 +142,13 @@ def test_shape_message_refits_the_garments(client, models, body):
                       20.0), f"status shape stayed {state['status'][-1]['shape']}"
     motion = make_motion("walk", fps=30.0)
     vertices, _ = publish_pose_until_answered(client, motion.rotvecs[3], motion.root_translation[3])
-    twins = dress_for_display({name: model.clone() for name, model in models.items()}, body, {}, SUBDIVISION)
+    bases = {name: model.clone() for name, model in models.items()}
+    for model in bases.values():
+        model.set_shape(beta)
+    # as the node does: the layer bindings are made for the new shape
+    twins = dress_for_display(bases, body, {}, SUBDIVISION, beta)
     for name, model in models.items():
         twin = twins[name]
-        twin.set_shape(beta)
         np.testing.assert_allclose(vertices[name], twin.synthesize(motion.rotvecs[3], motion.root_translation[3]),
                                    atol=1e-5, err_msg=name)
         assert np.abs(vertices[name] - model.synthesize(motion.rotvecs[3], motion.root_translation[3])).max() > 5e-3
