@@ -100,11 +100,13 @@ def _state(url: str) -> dict:
         return json.loads(response.read())
 
 
-def _wait_for_meshes(url: str, names, children, timeout: float = 90.0) -> dict:
+def _wait_for_meshes(url: str, names, children, timeout: float = 90.0, agents=()) -> dict:
+    """The viewer's state once the garments `names` (and every agent of `agents`) stream frames."""
     deadline, state = time.monotonic() + timeout, {}
     while time.monotonic() < deadline:
         state = _state(url)
-        if {m["garment"] for m in state.values()} >= set(names) and all(m["frames"] > 5 for m in state.values()):
+        if {m["garment"] for m in state.values()} >= set(names) and all(m["frames"] > 5 for m in state.values()) \
+                and {m["agent"] for m in state.values()} >= set(agents):
             return state
         time.sleep(0.2)
     pytest.fail(f"viewer state {state}\n" + "\n".join(f"{n}: {c.output()[-3000:]}" for n, c in children.items()))
@@ -320,8 +322,9 @@ def test_frames_per_second_per_agent_of_a_crowd_of_ten(browser, tmp_path):
     }
     try:
         url = _viewer_url(children["viewer"])
-        state = _wait_for_meshes(url, ("body", "tshirt", "trousers"), children, 180.0)
-        assert {m["agent"] for m in state.values()} == {f"agentdress_node/{a}" for a in agents}, state
+        expected = {f"agentdress_node/{a}" for a in agents}
+        state = _wait_for_meshes(url, ("body", "tshirt", "trousers"), children, 180.0, expected)
+        assert {m["agent"] for m in state.values()} == expected, state
         context, page, errors = _open(browser, url)
         try:
             page.wait_for_function(f"Object.keys(agentdress.meshes).length >= {3 * len(agents)}", timeout=120_000)
