@@ -238,10 +238,21 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
         pytest.skip(f"{database} is not built")
     domain = DOMAIN_ID + 1
     params = {"garments": ["tshirt"], "garment_databases": [f"tshirt:{database}"], "display_subdivision": 0,
-              "engine": ["pose_model=examples", "neighbors=3", "decay=false"], "status_rate_hz": 4.0}
+              "engine": ["pose_model=examples", "neighbors=3", "decay=false"], "status_rate_hz": 4.0,
+              "realtime_priority": 5}
     child = ChildProcess(node_args(params), ros_env(domain, str(tmp_path / "log")), tmp_path / "node.log")
     try:
         assert child.wait_for_output("garment models ready", timeout=90.0), child.output()
+        # the executor thread (the process's main thread) is SCHED_FIFO where the machine allows it, and the log
+        # says which; the DDS threads keep the normal scheduler
+        assert child.wait_for_output("realtime_priority 5: not allowed", timeout=1.0) or child.wait_for_output(
+            "SCHED_FIFO priority 5", timeout=20.0), child.output()
+        import os
+
+        fifo = "SCHED_FIFO priority 5" in child.output()
+        assert os.sched_getscheduler(child.pid) == (os.SCHED_FIFO if fifo else os.SCHED_OTHER)
+        threads = [int(t) for t in os.listdir(f"/proc/{child.pid}/task") if int(t) != child.pid]
+        assert threads and all(os.sched_getscheduler(t) == os.SCHED_OTHER for t in threads)
         model = make_garment_model("tshirt", database, None, body, START_SHAPE,
                                    EngineConfig(pose_model="examples", neighbors=3, decay=False))
         with ros_node("agentdress_db_client", domain) as (node, executor):

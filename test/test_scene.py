@@ -27,7 +27,7 @@ def test_tier_lines_parse_and_print_back():
     tiers = DEFAULT_TIERS
     assert [t.name for t in tiers] == ["near", "mid", "far", "distant"]
     assert tiers[1].engine == (("neighbors", 2), ("penetration", False)) and tiers[1].kind == "synthesis"
-    assert tiers[2].kind == "skinned" and math.isinf(tiers[3].max_distance) and tiers[3].every == 3
+    assert tiers[2].kind == "skinned" and math.isinf(tiers[3].max_distance) and tiers[3].every == 6
     assert parse_tiers([t.text() for t in tiers]) == tiers
 
 
@@ -134,6 +134,23 @@ def test_scheduler_never_drops_near_agents_even_over_budget():
     decisions = schedule(_candidates([1.0, 1.5, 2.0], [0, 0, 0]), budget_ms=0.5)
     assert all(d.level == 0 and not d.degraded for d in decisions)
     assert all(d.level == 1 for d in schedule(_candidates([5.0, 6.0], [1, 1]), budget_ms=0.0))  # 0: no budget
+
+
+def test_scheduler_defers_far_near_agents_a_tick_when_they_alone_overfill_it():
+    """Near agents are never lowered; when their poses arrive together, the farthest wait a tick or two (never
+    the nearest, never more than near_wait ticks in a row) so their cost spreads over the ticks between poses."""
+    candidates = _candidates([1.0, 1.5, 2.0, 2.5], [0, 0, 0, 0])  # 1 ms each at level 0
+    decisions = {d.key: d for d in schedule(candidates, budget_ms=2.0, near_wait=2)}
+    assert [decisions[k].level for k in ("a0", "a1", "a2", "a3")] == [0, 0, None, None]
+    assert all(d.level in (0, None) for d in decisions.values())  # deferred, never lowered
+    for c in candidates:  # the deferred ones waited: they go first next time, the others may wait
+        c.waited = 1 if decisions[c.key].level is None else 0
+    second = {d.key: d for d in schedule(candidates, budget_ms=2.0, near_wait=2)}
+    assert second["a1"].level is None  # not deferred last tick: its turn
+    assert [second[k].level for k in ("a0", "a1", "a2", "a3")].count(None) == 2
+    for c in candidates:
+        c.waited = 2
+    assert all(d.level == 0 for d in schedule(candidates, budget_ms=2.0, near_wait=2))  # waited enough
 
 
 # ---- a scene on the shipped databases ---------------------------------------------------------------------------
@@ -256,7 +273,7 @@ def test_budget_holds_with_artificially_expensive_agents(body, walk):
             agent.cost_ms = {0: 1.0, 1: 0.8, 2: 0.5, 3: 0.5}
         scene.set_viewer(Viewer.from_pose((0.0, 0.0, 0.9), LOOK_X))
         dressed_count = {f"a{i}": 0 for i in range(len(distances))}
-        for t in range(9):
+        for t in range(18):  # two rounds of the distant tier's every=6, two max_waits
             for i, x in enumerate(distances):
                 scene.agents[f"a{i}"].pose.set(walk.rotvecs[t], (x, 0.0, 0.0))
             report = scene.tick()

@@ -75,29 +75,42 @@ def forward_kinematics(rotvecs, root_translation, rest_heads, parents, transform
     return positions
 
 
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _skin_vertex(rest, skin_indices, skin_weights, transforms, v):
+    """sum_k w_vk T_{i_vk} [rest_v; 1] as three scalars (zero-weight slots skipped)."""
+    x, y, z = rest[v, 0], rest[v, 1], rest[v, 2]
+    ox = 0.0
+    oy = 0.0
+    oz = 0.0
+    for k in range(skin_indices.shape[1]):
+        w = skin_weights[v, k]
+        if w == 0.0:
+            continue
+        b = skin_indices[v, k]
+        ox += w * (transforms[b, 0, 0] * x + transforms[b, 0, 1] * y + transforms[b, 0, 2] * z + transforms[b, 0, 3])
+        oy += w * (transforms[b, 1, 0] * x + transforms[b, 1, 1] * y + transforms[b, 1, 2] * z + transforms[b, 1, 3])
+        oz += w * (transforms[b, 2, 0] * x + transforms[b, 2, 1] * y + transforms[b, 2, 2] * z + transforms[b, 2, 3])
+    return ox, oy, oz
+
+
 @numba.njit(cache=True, fastmath=True)
 def linear_blend_skinning(rest, skin_indices, skin_weights, transforms, out):
     """out (V, 3) = sum_k w_vk T_{i_vk} [rest_v; 1] for rest (V, 3), skin_indices/weights (V, K), transforms (B, 3, 4).
 
     Zero-weight slots are skipped; dtype follows `out` (float32 or float64).
     """
-    n_vertices, n_influences = skin_indices.shape
-    for v in range(n_vertices):
-        x, y, z = rest[v, 0], rest[v, 1], rest[v, 2]
-        ox = 0.0
-        oy = 0.0
-        oz = 0.0
-        for k in range(n_influences):
-            w = skin_weights[v, k]
-            if w == 0.0:
-                continue
-            t = transforms[skin_indices[v, k]]
-            ox += w * (t[0, 0] * x + t[0, 1] * y + t[0, 2] * z + t[0, 3])
-            oy += w * (t[1, 0] * x + t[1, 1] * y + t[1, 2] * z + t[1, 3])
-            oz += w * (t[2, 0] * x + t[2, 1] * y + t[2, 2] * z + t[2, 3])
-        out[v, 0] = ox
-        out[v, 1] = oy
-        out[v, 2] = oz
+    for v in range(skin_indices.shape[0]):
+        out[v, 0], out[v, 1], out[v, 2] = _skin_vertex(rest, skin_indices, skin_weights, transforms, v)
+    return out
+
+
+@numba.njit(cache=True, fastmath=True)
+def linear_blend_skinning_into(rest, skin_indices, skin_weights, transforms, order, out):
+    """`linear_blend_skinning` scattered: out[order[v]] = skinned vertex v (the engine's internal vertex order to
+    the output order in the same pass; order (V,) int)."""
+    for v in range(skin_indices.shape[0]):
+        o = order[v]
+        out[o, 0], out[o, 1], out[o, 2] = _skin_vertex(rest, skin_indices, skin_weights, transforms, v)
     return out
 
 

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..body import AnnyBody, quads_to_triangles
-from ..body.kinematics import forward_kinematics, linear_blend_skinning
+from ..body.kinematics import forward_kinematics, linear_blend_skinning, linear_blend_skinning_into
 from ..garment.binding import SurfaceBinding, evaluate_surface_binding, vertex_normals
 from .config import TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
@@ -295,7 +295,6 @@ class Engine:
         rest[self.order] = self.db.rest
         self._buffers = (rest, rest.copy())  # double buffer: the last good frame survives a bad one
         self._current = 0
-        self._skinned = np.empty((v, 3), dtype=self.dtype)
 
     def _anchor_residuals(self) -> np.ndarray | None:
         """(N, 3, V) f(beta0, theta_s) - pose_model(theta_s) in the rest frame, per anchor, for a pose model that is
@@ -440,9 +439,8 @@ class Engine:
         `synthesize`). Returns a view of an internal buffer like `synthesize`."""
         state = self._state
         self._pose(rotvecs, root_translation, state)
-        linear_blend_skinning(state.rest, self.skin_indices, self.skin_weights, self.transforms, self._skinned)
         out = self._buffers[1 - self._current]
-        out[self.order] = self._skinned
+        linear_blend_skinning_into(state.rest, self.skin_indices, self.skin_weights, self.transforms, self.order, out)
         if not np.isfinite(out).all():
             self.bad_frames += 1
             return self._buffers[self._current]

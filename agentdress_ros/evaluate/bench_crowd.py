@@ -1,7 +1,8 @@
 """`agentdress bench crowd --agents 1 10 25 50 100 --seconds S`: one node dressing N agents over real DDS.
 
 For each N the node runs as a child process in crowd mode (`agents: [agent_000, ...]`, T-shirt and trousers from the
-shipped databases, examples pose model); a second child process (`agentdress demo --agents N`) publishes every
+shipped databases, examples pose model), pinned to one core (`--node-cores`; its DDS threads share that core) while
+the pose publisher and this process run on the others; a second child process (`agentdress demo --agents N`) publishes every
 agent's JointState at `--pose-rate` and, in the spread run, a fixed viewer pose; this process listens to the nearest
 agent's T-shirt cloud and to ~/status. Two runs per N:
   near    every agent within 3 m, LOD off (lod.enabled false): every agent fully dressed on every new pose
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -36,7 +38,8 @@ VIEWER = (-16.0, 0.0, 1.6, 0.0)  # x, y, z, yaw: at the plaza's edge, looking al
 
 
 def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: float, budget_ms: float,
-             warmup: float, log_dir: Path, node_nice: int = 0) -> dict:
+             warmup: float, log_dir: Path, node_nice: int = 0, node_cores: tuple = (),
+             realtime_priority: int = 0) -> dict:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import String
@@ -52,9 +55,15 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
               "garment_databases": [f"{g}:{p}" for g, p in DATABASES.items()],
               "rate_hz": float(rate_hz), "status_rate_hz": 1.0, "budget_ms": float(budget_ms),
               "lod.enabled": mode == "spread"}
+    if realtime_priority:
+        params["realtime_priority"] = int(realtime_priority)
     prefix = ["nice", "-n", str(node_nice)] if node_nice else []
+    others = sorted(os.sched_getaffinity(0) - set(node_cores))
+    if node_cores and others:  # the node alone on its cores (its DDS threads too); the publisher and this process
+        prefix = ["taskset", "-c", ",".join(map(str, node_cores))] + prefix  # on the others
+        os.sched_setaffinity(0, others)
     node = ChildProcess(prefix + node_args(params), env, log_dir / f"node_{mode}_{count}.log")
-    demo_args = [sys.executable, "-m", "agentdress_ros.ros.crowd_demo", "--agents", str(count), "--rate",
+    demo_args = (["taskset", "-c", ",".join(map(str, others))] if node_cores and others else []) + [sys.executable, "-m", "agentdress_ros.ros.crowd_demo", "--agents", str(count), "--rate",
                  str(pose_rate)]
     demo_args += ["--near"] if mode == "near" else ["--viewer-at", *(str(v) for v in VIEWER)]
     demo = None
@@ -76,7 +85,7 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
                 raise RuntimeError("the node did not finish fitting the agents' shapes within 600 s")
             spin_until(executor, lambda: False, warmup)
             detail = state["status"][-1]["crowd"]["agents_detail"]
-            nearest = min(detail, key=lambda n: (detail[n]["distance"], n))
+            nearest = min(detail, key=lambda n: (not detail[n]["visible"], detail[n]["distance"], n))  # in view
             client.create_subscription(PointCloud2, f"/agentdress_node/{nearest}/tshirt/points", on_cloud,
                                        QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
                                                   reliability=ReliabilityPolicy.BEST_EFFORT))
@@ -101,7 +110,8 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
                         "ms": t["ms"]}
                  for name, t in crowd["tiers"].items()}
         return {
-            "agents": count, "mode": mode, "node_nice": node_nice, "seconds": round(wall, 1), "pose_rate_hz": pose_rate, "rate_hz": rate_hz,
+            "agents": count, "mode": mode, "node_nice": node_nice, "node_cores": list(node_cores),
+            "realtime_priority": realtime_priority, "seconds": round(wall, 1), "pose_rate_hz": pose_rate, "rate_hz": rate_hz,
             "budget_ms": budget_ms if mode == "spread" else None,
             "tick_ms": status["tick_ms"], "late_ticks": status["late_ticks"] - status0["late_ticks"],
             "tick_rate_hz": status["tick_rate_hz"],
@@ -168,9 +178,12 @@ def _run_cpu(count: int, ticks: int = 60) -> dict:
 
 def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near", "spread"),
                 pose_rate: float = 30.0, rate_hz: float = 90.0, budget_ms: float = 8.0, warmup: float = 5.0,
-                node_nice: int = 0):
+                node_nice: int = 0, node_cores=None, realtime_priority: int = 0):
     """Yields one result dict per (mode, N), RSS added per agent against the smallest N of the same mode."""
     log_dir = Path(tempfile.mkdtemp(prefix="agentdress_bench_crowd_"))
+    if node_cores is None:  # the goals are for one core: the node on the first, the rest of the machine beside it
+        cores = sorted(os.sched_getaffinity(0))
+        node_cores = cores[:1] if len(cores) > 1 and shutil.which("taskset") else []
     for mode in modes:
         if mode == "cpu":
             for count in sorted(counts):
@@ -179,7 +192,7 @@ def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near
         base = None
         for count in sorted(counts):
             result = _run_one(int(count), mode, float(seconds), float(pose_rate), float(rate_hz), float(budget_ms),
-                              float(warmup), log_dir, int(node_nice))
+                              float(warmup), log_dir, int(node_nice), tuple(node_cores), int(realtime_priority))
             if base is None:
                 base = result
             elif count > base["agents"]:
@@ -199,11 +212,18 @@ def main(argv=None) -> int:
     parser.add_argument("--pose-rate", type=float, default=30.0, help="JointState rate per agent, Hz (default 30)")
     parser.add_argument("--rate", type=float, default=90.0, help="node rate_hz")
     parser.add_argument("--budget-ms", type=float, default=8.0)
+    parser.add_argument("--node-cores", type=int, nargs="*", default=None,
+                        help="CPU cores the node runs on, pinned with taskset (default: the first core when there "
+                             "are two or more; the pose publisher and this process run on the others). "
+                             "Empty: not pinned")
+    parser.add_argument("--realtime-priority", type=int, default=0,
+                        help="the node's realtime_priority parameter (SCHED_FIFO for its executor thread; 0: off)")
     parser.add_argument("--node-nice", type=int, default=0,
                         help="run the node under `nice -n N` (negative: ahead of other work on a shared machine)")
     args = parser.parse_args(argv)
     for result in bench_crowd(args.agents, args.seconds, args.modes, args.pose_rate, args.rate, args.budget_ms,
-                              node_nice=args.node_nice):
+                              node_nice=args.node_nice, node_cores=args.node_cores,
+                              realtime_priority=args.realtime_priority):
         print(json.dumps(result), flush=True)
     return 0
 

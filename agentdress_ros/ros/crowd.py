@@ -17,8 +17,8 @@ tests and benchmarks of the frame budget). Agents added to `agents` at run time 
 thread and go live on a later tick; removed ones are dropped at once (their publishers destroyed).
 
 Inputs are polled: the agents' subscriptions sit on a second node that no executor spins, and each tick takes what
-waited (a KEEP_LAST queue keeps only the newest poses of agents nobody looked at). Near agents in view also get a
-subscription on the spun node, whose callback dresses each pose as it arrives.
+waited (a KEEP_LAST queue keeps only the newest poses of agents nobody looked at). The agents nearest the viewer in
+view (ARRIVAL_AGENTS) also get a subscription on the spun node, whose callback dresses each pose as it arrives.
 """
 from __future__ import annotations
 
@@ -28,7 +28,6 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState, PointCloud2
 from shape_msgs.msg import Mesh
 from std_msgs.msg import Float32MultiArray
@@ -36,7 +35,7 @@ from std_msgs.msg import Float32MultiArray
 from ..scene import AgentSpec, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tiers
 from ..motion.joint_names import JOINT_NAMES
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
-from .messages import make_mesh, make_point_cloud, set_cloud_vertices
+from .messages import JointStateReader, SerializedCloud, make_mesh
 from .params import ParameterError, validate
 
 # rclpy gives every publisher and subscription two QoS event handlers (incompatible QoS, incompatible type), and its
@@ -47,6 +46,9 @@ QUIET_SUBSCRIPTION = SubscriptionEventCallbacks(use_default_callbacks=False)
 QUIET_PUBLISHER = PublisherEventCallbacks(use_default_callbacks=False)
 TOPICS = ("joint_states", "body_shape")  # an agent's inputs, in the order of its entity's "subs"
 SHAPE_POLL_TICKS = 9  # each agent's body_shape (and, when not dressed, its pose) is looked at every 9th tick
+# Agents answered on arrival, the nearest in view: their dressing runs between ticks, outside the budget, so the
+# others (a crowd of near agents among them) are dressed by the ticks, which spread it over the ticks between poses.
+ARRIVAL_AGENTS = 4
 MAX_PENDING = 16  # serialized poses kept per agent between parses (the newest)
 
 
@@ -110,7 +112,8 @@ class Crowd:
                            enable_rosout=False, start_parameter_services=False)
         self._shape_turn = 0
         self.scene.before_dress = self._parse_pending
-        self.clouds: dict[tuple, PointCloud2] = {}
+        self.scene.between_agents = self._answer_arrivals
+        self.clouds: dict[tuple, SerializedCloud] = {}  # (agent, garment) -> its last cloud, serialized
         self.topology: dict[str, dict] = {}  # agent -> {garment: Mesh}, made on the worker
         self.viewer_sub = None
         if self.config["viewer_topic"]:
@@ -176,7 +179,7 @@ class Crowd:
                 inputs.create_subscription(Float32MultiArray, f"{name}/body_shape", _never_called,
                                            self.node._qos("shape"), event_callbacks=QUIET_SUBSCRIPTION)]
         self.entities[name] = {"subs": subs, "handles": [sub.handle for sub in subs], "pending": [],
-                               "points": {}, "mesh": {}, "installed": None}
+                               "reader": JointStateReader(), "points": {}, "mesh": {}, "installed": None}
 
     def _prepare(self, agent):
         """Worker thread: topology messages of a built agent."""
@@ -262,50 +265,67 @@ class Crowd:
             return
         pending, entity["pending"] = entity["pending"], []
         accept = self.node._guarded(f"{agent.name}/joint_states", self._on_joint_state)
-        newest = deserialize_message(pending[-1], JointState)
-        if len(newest.name) < len(JOINT_NAMES):  # a partial update: the older ones count too (parsing is the cost)
+        newest = entity["reader"].read(pending[-1])
+        if len(newest[0]) < len(JOINT_NAMES):  # a partial update: the older ones count too (parsing is the cost)
             for raw in pending[:-1]:
-                accept(agent.name, deserialize_message(raw, JointState))
-        accept(agent.name, newest)
+                accept(agent.name, *entity["reader"].read(raw))
+        accept(agent.name, *newest)
 
     def sync_arrival(self):
-        """After a tick: near agents in view get a second JointState subscription on the spun node, whose
-        callback answers each pose as it arrives (at most once per half period: a flood is answered at the node's
-        rate); an agent leaving that tier loses it. Few agents are near, so the executor waits on few entities."""
-        node, protect = self.node, self.scene.config.protect_tiers
-        for agent in list(self.scene.agents.values()):
+        """After a tick: the ARRIVAL_AGENTS agents nearest the viewer in view get a second JointState subscription on
+        the spun node, whose callback answers each pose as it arrives (at most once per half period: a flood is
+        answered at the node's rate); an agent leaving that set loses it. The executor waits on few entities."""
+        node = self.node
+        agents = list(self.scene.agents.values())
+        near = sorted((a.distance, a.name) for a in agents if a.tier is not None and a.visible)
+        answered = {name for _, name in near[:ARRIVAL_AGENTS]} if self.config["answer_on_arrival"] else set()
+        for agent in agents:
             entity = self.entities.get(agent.name)
             if entity is None:
                 continue
-            want = self.config["answer_on_arrival"] and agent.tier is not None and agent.tier < protect \
-                and agent.visible
+            want = agent.name in answered
             sub = entity.get("arrival")
             if want and sub is None:
                 entity["arrival"] = node.create_subscription(
                     JointState, f"{agent.name}/joint_states",
                     node._guarded(f"{agent.name}/joint_states", lambda m, n=agent.name: self._on_arrival(n, m)),
-                    node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION)
+                    node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION, raw=True)
             elif not want and sub is not None:
                 node.destroy_subscription(entity.pop("arrival"))
 
-    def _on_arrival(self, name: str, msg: JointState):
+    def _on_arrival(self, name: str, raw: bytes):
         self.node.stats.counts["joint_states_received"] += 1
         entity = self.entities.get(name)
-        if entity is not None:
-            entity["pending"].clear()  # taken by the tick before this reader matched: older than this pose
-        self._on_joint_state(name, msg)
+        if entity is None:
+            return
+        entity["pending"].clear()  # taken by the tick before this reader matched: older than this pose
+        self._on_joint_state(name, *entity["reader"].read(raw))
         agent = self.scene.agents.get(name)
         if agent is not None and time.monotonic() - agent.last_dressed >= 0.5 / self.config["rate_hz"]:
             self.scene.dress_now(name, self._publish)
 
-    def _on_joint_state(self, name: str, msg: JointState):
+    def _answer_arrivals(self):
+        """Scene hook, between the agents a tick dresses: poses that reached the agents answered on arrival while
+        the tick runs are answered now instead of after it (their reader's callback would wait for the tick)."""
+        for name, entity in list(self.entities.items()):
+            sub = entity.get("arrival")
+            if sub is None:
+                continue
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+            while taken is not None:  # oldest first, as the callback would have had them
+                self.node._guarded(f"{name}/joint_states", self._on_arrival)(name, taken[0])
+                with sub.handle:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+
+    def _on_joint_state(self, name: str, names: list, positions: np.ndarray, stamp_ns: int):
+        """One JointState (read by the agent's JointStateReader) into the agent's pose."""
         node = self.node
         agent = self.scene.agents.get(name)
         if agent is None:
             return
         try:
-            unknown = agent.pose.accept(msg.name, msg.position, stamp_to_ns(msg.header.stamp.sec,
-                                                                               msg.header.stamp.nanosec))
+            unknown = agent.pose.accept(names, positions, stamp_ns)
             if unknown:
                 node.stats.counts["unknown_joint_names"] += len(unknown)
                 node._warn(f"{name}/joint_states/unknown_names", f"{name}: ignoring unknown joint names: "
@@ -344,40 +364,41 @@ class Crowd:
         entity = self.entities.get(agent.name)
         if entity is None or entity["installed"] is not agent:
             return
-        from .messages import stamp_from_ns
-
-        stamp = stamp_from_ns(stamp_ns or self.node.get_clock().now().nanoseconds)
+        stamp_ns = stamp_ns or self.node.get_clock().now().nanoseconds
+        frame_id = agent.spec.frame_id
         for g, vertices in frames.items():
             if not np.isfinite(vertices).all():  # never emit garbage: keep the last good cloud
                 self.node.stats.counts[f"non_finite_output:{agent.name}/{g}"] += 1
                 continue
             key = (agent.name, g)
             cloud = self.clouds.get(key)
-            if cloud is None:
-                cloud = self.clouds[key] = make_point_cloud()
-            set_cloud_vertices(cloud, vertices, stamp, agent.spec.frame_id)
-            entity["points"][g].publish(cloud)
+            if cloud is None or cloud.frame_id != frame_id or cloud.n_vertices != len(vertices):
+                cloud = self.clouds[key] = SerializedCloud(frame_id, len(vertices))
+            entity["points"][g].publish(cloud.set(vertices, stamp_ns))
 
     def tick(self) -> dict:
+        started = time.perf_counter()
         self.poll()
+        self._install_new()
+        report = self.scene.tick(self._publish, started=started)
+        after = time.perf_counter()
+        self.sync_arrival()
+        self._install_new()  # agents installed by this tick (built on the worker)
+        self.scene.note_after_ms(1e3 * (time.perf_counter() - after))
+        return report
+
+    def _install_new(self):
         for agent in list(self.scene.agents.values()):
             entity = self.entities.get(agent.name)
             if entity is not None and entity["installed"] is not agent:
                 self._install(agent)
-        report = self.scene.tick(self._publish)
-        self.sync_arrival()
-        for agent in list(self.scene.agents.values()):  # installed by this tick (built on the worker)
-            entity = self.entities.get(agent.name)
-            if entity is not None and entity["installed"] is not agent:
-                self._install(agent)
-        return report
 
     def keepalive(self):
         """Re-send the last clouds of agents in view (a display that joined late); culled agents stay silent."""
         for (name, g), cloud in list(self.clouds.items()):
             agent = self.scene.agents.get(name)
             if agent is not None and agent.visible and name in self.entities:
-                self.entities[name]["points"][g].publish(cloud)
+                self.entities[name]["points"][g].publish(cloud.data)
 
     def status(self) -> dict:
         status = self.scene.status()

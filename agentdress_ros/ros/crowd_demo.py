@@ -209,13 +209,14 @@ def crowd_main(argv=None) -> int:
         t = time.monotonic() - start
         if args.duration and t > args.duration:
             raise SystemExit(0)
-        stamp = node.get_clock().now().to_msg()
         rotvecs, roots = player.frames(t)
         positions = np.concatenate([rotvecs.reshape(len(messages), -1), roots], axis=1).tolist()
+        clock = node.get_clock()
         for i, msg in enumerate(messages):
-            msg.header.stamp = stamp
             msg.position = positions[i]
+            msg.header.stamp = clock.now().to_msg()  # each stamped as it is sent: latency counts from here
             joint_pubs[i].publish(msg)
+        stamp = msg.header.stamp
         if t - state["last_shape"] >= 5.0:  # shapes now and then (reliable, depth 1: a late node still gets one)
             state["last_shape"] = t
             for i, pub in enumerate(shape_pubs):

@@ -6,11 +6,14 @@ and the tests alike.
 from __future__ import annotations
 
 import array
+import struct
 import sys
 
 import numpy as np
 
 __all__ = [
+    "JointStateReader",
+    "SerializedCloud",
     "cloud_to_vertices",
     "make_marker",
     "make_mesh",
@@ -58,6 +61,90 @@ def set_cloud_vertices(msg, vertices: np.ndarray, stamp=None, frame_id: str | No
     if frame_id is not None:
         msg.header.frame_id = frame_id
     return msg
+
+
+class SerializedCloud:
+    """A PointCloud2 of a fixed frame_id and vertex count kept serialized (CDR): each frame writes the stamp and
+    the vertices into the bytes in place, and `Publisher.publish` takes the bytes as they are. A quarter of the cost
+    of publishing the message object, whose fields rclpy converts on every publish (a crowd publishes thousands
+    of clouds a second). The bytes are what `serialize_message` makes of the same cloud."""
+
+    def __init__(self, frame_id: str, n_vertices: int):
+        from rclpy.serialization import serialize_message
+
+        self.frame_id, self.n_vertices = frame_id, int(n_vertices)
+        msg = set_cloud_vertices(make_point_cloud(frame_id), np.zeros((self.n_vertices, 3), dtype=np.float32))
+        self._buffer = bytearray(serialize_message(msg))
+        # Layout (CDR, little or big endian per the 4-byte encapsulation header): stamp sec and nanosec right
+        # after that header; the data sequence (length, bytes) just before the final is_dense byte.
+        self._endian = "<" if self._buffer[1] == 1 else ">"
+        size = 12 * self.n_vertices
+        self._data_offset = len(self._buffer) - 1 - size
+        length = int.from_bytes(self._buffer[self._data_offset - 4:self._data_offset],
+                                "little" if self._endian == "<" else "big")
+        if length != size or self._buffer[-1] != 1:
+            raise RuntimeError(f"unexpected PointCloud2 serialization: data length {length}, expected {size}")
+        self._vertices = np.frombuffer(self._buffer, dtype=self._endian + "f4", count=3 * self.n_vertices,
+                                       offset=self._data_offset).reshape(self.n_vertices, 3)
+        self.data = bytes(self._buffer)
+
+    def set(self, vertices: np.ndarray, stamp_ns: int) -> bytes:
+        """Write vertices (V, 3) and the stamp; returns the serialized cloud (also kept as `data`)."""
+        np.copyto(self._vertices, vertices, casting="same_kind")
+        struct.pack_into(self._endian + "iI", self._buffer, 4, int(stamp_ns // 1_000_000_000),
+                         int(stamp_ns % 1_000_000_000))
+        self.data = bytes(self._buffer)
+        return self.data
+
+
+def _align(offset: int, size: int) -> int:
+    """CDR alignment: offsets count from the end of the 4-byte encapsulation header."""
+    return 4 + -(-(offset - 4) // size) * size
+
+
+class JointStateReader:
+    """Names, positions and stamp of serialized JointStates (CDR bytes, as a raw subscription hands them over)
+    from one sender, parsed without building the message: a sender repeats its frame_id and joint names, so once
+    one message was parsed in full, the next whose bytes up to the positions are the same is read with two slices
+    (a few microseconds against ~27 for `deserialize_message` of 96 joints). Anything else is parsed in full."""
+
+    def __init__(self):
+        self._prefix = b""  # bytes from frame_id to the end of the names of the last fully parsed message
+        self._names: list = []
+        self._count_offset = 0  # offset of the position count in those messages
+
+    def read(self, raw: bytes) -> tuple[list, np.ndarray, int]:
+        """(names (list of str), positions (N,) float64, stamp ns) of serialized JointState `raw`."""
+        endian = "<" if raw[1] == 1 else ">"
+        sec, nanosec = struct.unpack_from(endian + "iI", raw, 4)
+        stamp_ns = sec * 1_000_000_000 + nanosec
+        end = self._count_offset
+        if end and raw[12:end] == self._prefix and len(raw) >= end + 4:
+            count = struct.unpack_from(endian + "I", raw, end)[0]
+            start = _align(end + 4, 8)
+            if count == len(self._names) and len(raw) >= start + 8 * count:
+                return self._names, np.frombuffer(raw, dtype=endian + "f8", count=count, offset=start), stamp_ns
+        return self._parse(raw, endian, stamp_ns)
+
+    def _parse(self, raw: bytes, endian: str, stamp_ns: int):
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import JointState
+
+        msg = deserialize_message(raw, JointState)
+        names, positions = list(msg.name), np.asarray(msg.position, dtype=np.float64)
+        # Where the position count sits, walked as CDR lays out the strings (length incl. the NUL, then bytes).
+        offset = 12 + 4 + len(msg.header.frame_id.encode()) + 1
+        offset = _align(offset, 4) + 4
+        for name in names:
+            offset = _align(offset, 4) + 4 + len(name.encode()) + 1
+        offset = _align(offset, 4)
+        start = _align(offset + 4, 8)
+        known = len(raw) >= start + 8 * len(positions) and len(names) == len(positions) and np.array_equal(
+            np.frombuffer(raw, dtype=endian + "f8", count=len(positions), offset=start).view(np.uint64),
+            positions.view(np.uint64))
+        if known:  # the walk agrees with the parser: later messages with these bytes take the fast path
+            self._prefix, self._names, self._count_offset = bytes(raw[12:offset]), names, offset
+        return names, positions, stamp_ns
 
 
 def cloud_to_vertices(msg) -> np.ndarray:

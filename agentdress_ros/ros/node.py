@@ -585,6 +585,22 @@ class AgentDressNode(Node):
         return super().destroy_node()
 
 
+def set_realtime_priority(priority: int, logger) -> bool:
+    """SCHED_FIFO at `priority` for the calling thread only (the executor's; the DDS threads keep the normal
+    scheduler and run while it waits between ticks). Returns whether it took; a refusal is logged with the remedy."""
+    if priority <= 0:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (PermissionError, OSError) as error:
+        logger.warning(f"realtime_priority {priority}: not allowed ({error.strerror or error}); running with the "
+                       "normal scheduler. Grant CAP_SYS_NICE (e.g. docker --cap-add SYS_NICE) or an rtprio limit "
+                       "(ulimit -r, /etc/security/limits.conf)")
+        return False
+    logger.info(f"executor thread at SCHED_FIFO priority {priority}")
+    return True
+
+
 def main(args=None) -> int:
     """Console script `agentdress_node [--ros-args ...]`. Exit status 0 on Ctrl-C / SIGTERM, 2 when the
     configuration cannot start (the reason, naming the parameter or database file, goes to stderr)."""
@@ -602,6 +618,7 @@ def main(args=None) -> int:
             return 2
         executor = SingleThreadedExecutor()
         executor.add_node(node)
+        set_realtime_priority(node.config["realtime_priority"], node.get_logger())
         spin_until_shutdown(executor.spin)
         return 0
     finally:

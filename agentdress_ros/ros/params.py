@@ -86,6 +86,9 @@ PARAMETERS: dict[str, Spec] = {
                                                 "agents' frame (there is no tf2 wheel)"),
     "budget_ms": Spec(8.0, "frame budget of the crowd tick, ms: far agents are lowered or updated on alternate ticks "
                            "to hold it, near ones never; 0 = no budget"),
+    "realtime_priority": Spec(0, "SCHED_FIFO priority (1-99) of the node's executor thread, so that its own DDS "
+                                 "threads cannot preempt a tick (README 'A crowd in one node'); needs CAP_SYS_NICE or "
+                                 "an rtprio limit, else a warning; 0 = the normal scheduler", runtime=False),
     "lod.enabled": Spec(True, "levels of detail and culling by the viewer's pose (false: every agent fully dressed)"),
     "lod.tiers": Spec(list(DEFAULT_TIER_TEXT), "tiers by distance, '<name> <max m|inf> <synthesis|skinned> "
                                                "[neighbors=n] [penetration=false] [every=n] ...'", runtime=False),
@@ -224,6 +227,10 @@ def validate(name: str, value):
         return _string_list(name, value)
     if name == "lod.hysteresis":
         return _number(name, value, 0.0, 100.0)
+    if name == "realtime_priority":
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 99:
+            raise ParameterError(f"realtime_priority must be an integer in [0, 99], got {value!r}")
+        return value
     if name == "lod.fade_frames":
         if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 100:
             raise ParameterError(f"lod.fade_frames must be an integer in [0, 100], got {value!r}")

@@ -10,7 +10,8 @@ Each tick: install what the worker built (new agents, removals are immediate); p
 viewer picks a tier (hysteresis), the viewing cone culls; an agent is a candidate when it is visible, due (tiers
 with `every` > 1 on their ticks, staggered over agents) and something changed (new pose, new shape, back in view,
 a fade in progress); the scheduler fits the candidates into `budget_ms` with the measured cost of each agent's
-level; the decisions run nearest first, each timed (dressing + publish) into its level's cost estimate.
+level and what is left of the budget after the tick's fixed costs (taking input, deciding, bookkeeping after);
+the decisions run nearest first, each timed (dressing + publish) into its level's cost estimate.
 """
 from __future__ import annotations
 
@@ -32,6 +33,8 @@ __all__ = ["AgentSpec", "PoseState", "Scene", "SceneConfig", "TickReport"]
 #: Height of the hips above the root translation's origin (the rest Hips sit ~0.9 m up): the agent's centre.
 HIPS_HEIGHT = 0.9
 DEFAULT_COST_MS = 0.2  # estimate for a level never measured yet
+INTERLEAVE_MS = 1.0  # the between_agents hook runs at most this often within a tick
+MIN_DRESSING_MS = 0.01  # dressing budget left when the fixed costs alone fill the tick (near agents still dressed)
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,7 @@ class SceneConfig:
     budget_ms: float = 8.0  # <= 0: no budget
     protect_tiers: int = 1  # tiers below this index are never lowered or skipped by the budget
     max_wait: int = 9  # an agent skipped this many ticks in a row is dressed (cheapest level): >= 9 Hz at 90 Hz
+    near_wait: int = 2  # a protected agent may be deferred this many ticks in a row when they alone overfill one
     fade_frames: int = 6
     cost_smoothing: float = 0.2  # weight of a new measurement in a level's cost estimate
 
@@ -202,9 +206,12 @@ class Scene:
         self.library = library if library is not None else GarmentLibrary(body)
         self.pose_factory = pose_factory
         self.before_dress = None  # called with an agent just before it is dressed (e.g. to parse waiting input)
+        self.between_agents = None  # called between the agents a tick dresses, at most every INTERLEAVE_MS (e.g. to
+        # answer a pose of the nearest agent that arrived meanwhile)
         self.agents: dict[str, Agent] = {}
         self.viewer: Viewer | None = None
         self.ticks = 0
+        self.after_ms = 0.0  # smoothed caller's work after each tick (note_after_ms), reserved from the budget
         self.level_cost: dict[int, float] = {}
         self.stats = TierStats([t.name for t in config.lod.tiers])
         self.on_error = on_error or (lambda message: None)
@@ -325,9 +332,14 @@ class Scene:
         old = self.level_cost.get(level)
         self.level_cost[level] = ms if old is None else (1 - a) * old + a * ms
 
-    def tick(self, publish=None, now_ns: int = 0) -> TickReport:
-        """One frame: decide, dress, publish. `publish(agent, frames, stamp_ns)` is timed as part of each agent."""
+    def tick(self, publish=None, now_ns: int = 0, started: float | None = None) -> TickReport:
+        """One frame: decide, dress, publish. `publish(agent, frames, stamp_ns)` is timed as part of each agent.
+
+        The budget holds the whole tick: the agents get what is left of `budget_ms` after the time since
+        `started` (the caller's perf_counter() when its tick began: taking input) and the caller's expected work
+        after this call (`note_after_ms`)."""
         start = time.perf_counter()
+        started = start if started is None else started
         with self._cond:
             ready, self._ready = self._ready, []
         for agent in ready:
@@ -373,10 +385,15 @@ class Scene:
             candidate = Candidate(agent.name, agent.distance, agent.tier, costs, agent.waited)
             candidates.append(candidate)
             by_key[agent.name] = agent
-        decisions = schedule(candidates, config.budget_ms, config.protect_tiers, config.max_wait)
+        decisions = schedule(candidates, self._dressing_budget(started), config.protect_tiers, config.max_wait,
+                             config.near_wait)
         decisions.sort(key=lambda d: by_key[d.key].distance)
         tier_ms = Counter()
+        between = time.perf_counter()
         for decision in decisions:
+            if self.between_agents is not None and time.perf_counter() - between >= INTERLEAVE_MS * 1e-3:
+                self.between_agents()
+                between = time.perf_counter()
             agent = by_key[decision.key]
             tier_name = tiers[decision.tier].name
             if decision.degraded:
@@ -394,6 +411,21 @@ class Scene:
         self.ticks += 1
         report.ms = 1e3 * (time.perf_counter() - start)
         return report
+
+    def _dressing_budget(self, started: float) -> float:
+        """ms left for dressing this tick: budget_ms less the tick's fixed costs (spent so far, expected after);
+        never 0 (which the scheduler reads as no budget) while a budget is set."""
+        budget = self.config.budget_ms
+        if budget <= 0:
+            return budget
+        spent = 1e3 * (time.perf_counter() - started)
+        return max(MIN_DRESSING_MS, budget - spent - self.after_ms)
+
+    def note_after_ms(self, ms: float):
+        """The caller's work after `tick` returned (publishing bookkeeping, subscriptions): smoothed into what the
+        next ticks reserve."""
+        a = self.config.cost_smoothing
+        self.after_ms = (1 - a) * self.after_ms + a * max(0.0, ms)
 
     def _dress(self, agent: Agent, level: int, tier: int, publish, now_ns: int) -> float:
         """Dress and publish one agent at `level`; returns the ms it took (recorded as that level's cost)."""
@@ -414,10 +446,10 @@ class Scene:
         return ms
 
     def dress_now(self, name: str, publish=None, now_ns: int = 0) -> bool:
-        """Dress agent `name` right away if it is near (a protected tier: the budget never lowers it) and in view
-        (a pose that just arrived, answered without waiting for the tick). Returns whether it was dressed."""
+        """Dress agent `name` right away at its tier's level if it is in view (a pose that just arrived at one of
+        the agents nearest the viewer, answered without waiting for the tick). Returns whether it was dressed."""
         agent = self.agents.get(name)
-        if agent is None or agent.tier is None or not agent.visible or agent.tier >= self.config.protect_tiers:
+        if agent is None or agent.tier is None or not agent.visible:
             return False
         if agent.pose.version == agent.done_version and not agent.dirty:
             return False

@@ -1,0 +1,61 @@
+"""Messages kept serialized (the crowd's byte paths) agree with rclpy's own serializer, field for field."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy", reason="rclpy (ros-jazzy-rclpy wheels, requirements/runtime.txt) is not importable")
+
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
+from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
+
+from agentdress_ros.motion.joint_names import JOINT_NAMES  # noqa: E402
+from agentdress_ros.ros.messages import JointStateReader, SerializedCloud, cloud_to_vertices  # noqa: E402
+
+
+def _joint_state(names, positions, frame_id="world", sec=12, nanosec=345, velocity=()):
+    msg = JointState(name=list(names), position=[float(p) for p in positions], velocity=list(velocity))
+    msg.header.frame_id = frame_id
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    return msg
+
+
+@pytest.mark.parametrize("n_vertices", [1, 7, 1200])
+def test_serialized_cloud_deserializes_to_the_frame_written(n_vertices):
+    rng = np.random.default_rng(n_vertices)
+    cloud = SerializedCloud("agent_frame", n_vertices)
+    for stamp_ns in (0, 1_796_000_000_123_456_789, 5_999_999_999):
+        vertices = rng.normal(size=(n_vertices, 3)).astype(np.float32)
+        msg = deserialize_message(cloud.set(vertices, stamp_ns), PointCloud2)
+        assert np.array_equal(cloud_to_vertices(msg), vertices)  # bit for bit
+        assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == divmod(stamp_ns, 1_000_000_000)
+        assert msg.header.frame_id == "agent_frame"
+        assert (msg.height, msg.width, msg.point_step, msg.row_step) == (1, n_vertices, 12, 12 * n_vertices)
+        assert [f.name for f in msg.fields] == ["x", "y", "z"] and msg.is_dense
+        assert cloud.data == cloud.set(vertices, stamp_ns)  # `data` is the last frame (the keep-alive re-sends it)
+
+
+def test_joint_state_reader_matches_the_deserializer_on_every_kind_of_message():
+    reader = JointStateReader()
+    rng = np.random.default_rng(0)
+    full = list(JOINT_NAMES)
+    cases = [
+        _joint_state(full, rng.normal(size=len(full))),
+        _joint_state(full, rng.normal(size=len(full)), sec=13),  # same names: the fast path
+        _joint_state(full, rng.normal(size=len(full)), frame_id="w"),  # another frame_id shifts every offset
+        _joint_state(full[:5], rng.normal(size=5), frame_id="w"),  # a partial update
+        _joint_state(full[1:6], rng.normal(size=5), frame_id="w"),  # same count and lengths, other names
+        _joint_state(["Hips_tx", "Hips_ty"], [np.nan, np.inf]),  # non-finite values pass through (accept rejects)
+        _joint_state(["Hips_tx", "Hips_ty", "Hips_tz"], [0.5, 0.25]),  # lengths differ (accept rejects)
+        _joint_state(["Hips_tx", "Hips_ty", "Hips_tz"], [0.5, 0.25, 0.125]),  # after it: same names, full again
+        _joint_state(["Hüfte", "Hips_ty"], [1.0, 2.0], frame_id="wörld"),  # multi-byte UTF-8 lengths
+        _joint_state([], []),
+        _joint_state(full, rng.normal(size=len(full)), velocity=[1.0] * len(full), nanosec=999_999_999),
+    ]
+    for msg in cases:
+        raw = serialize_message(msg)
+        for _ in range(2):  # the second read of the same bytes goes through the cached layout
+            names, positions, stamp_ns = reader.read(raw)
+            assert names == list(msg.name)
+            assert np.array_equal(positions, np.asarray(msg.position), equal_nan=True)
+            assert stamp_ns == msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
