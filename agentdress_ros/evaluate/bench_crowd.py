@@ -132,7 +132,7 @@ def _run_cpu(count: int, ticks: int = 60) -> dict:
     """CPU ms per agent frame at each tier's level, and per tick, for `count` agents (in process, no DDS)."""
     from ..body import AnnyBody
     from ..ros.crowd_demo import CrowdPlayer
-    from ..ros.messages import make_point_cloud, set_cloud_vertices
+    from ..ros.messages import SerializedCloud
     from ..scene import AgentSpec, GarmentSpec, Scene, SceneConfig
 
     body = AnnyBody()
@@ -144,9 +144,12 @@ def _run_cpu(count: int, ticks: int = 60) -> dict:
             scene.install(scene.build_agent(AgentSpec(f"agent_{i:03d}", garments, tuple(track.beta))))
         clouds = {}
 
-        def pack(agent, frames, stamp_ns):
+        def pack(agent, frames, stamp_ns):  # as the node does: into the cloud's serialized bytes
             for g, vertices in frames.items():
-                set_cloud_vertices(clouds.setdefault((agent.name, g), make_point_cloud()), vertices)
+                cloud = clouds.get((agent.name, g))
+                if cloud is None:
+                    cloud = clouds[(agent.name, g)] = SerializedCloud(agent.spec.frame_id, len(vertices))
+                cloud.set(vertices, stamp_ns)
 
         per_level = {}
         for level, tier in enumerate(scene.config.lod.tiers):

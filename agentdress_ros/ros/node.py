@@ -472,10 +472,10 @@ class AgentDressNode(Node):
     def _crowd_tick(self, now: float):
         start = time.perf_counter()
         report = self.crowd.tick()
+        self.stats.tick_ms.append(1e3 * (time.perf_counter() - start))  # every tick: taking input costs too
         if report.dressed:
             self.stats.counts["computed_ticks"] += 1
             self.stats.counts["published_frames"] += len(report.dressed)
-            self.stats.tick_ms.append(1e3 * (time.perf_counter() - start))
             self._last_publish = now
         else:
             self.stats.counts["idle_ticks"] += 1
