@@ -162,6 +162,28 @@ def test_two_agents_get_their_own_correct_clouds(crowd, body):
     assert alice_cloud.header.frame_id == "agent" and bob_cloud.header.frame_id == "bob_frame"
 
 
+def test_markers_for_rviz_per_agent(crowd):
+    """marker_rate_hz > 0: each agent near the viewer gets its garments as TRIANGLE_LIST Markers on
+    ~/<agent>/marker in its own frame; 0 stops them."""
+    from visualization_msgs.msg import Marker
+
+    client, _ = crowd
+    markers = {}
+    for agent in ("alice", "bob"):
+        client.node.create_subscription(Marker, f"/agentdress_node/{agent}/marker",
+                                        lambda m, a=agent: markers.setdefault(a, m), 10)
+    walk = make_motion("walk", fps=30.0)
+    client.answer("alice", walk.rotvecs[5], walk.root_translation[5])
+    client.answer("bob", walk.rotvecs[6], walk.root_translation[6])
+    assert client.set_parameters(marker_rate_hz=2.0)[0].successful
+    assert spin_until(client.executor, lambda: len(markers) == 2, 20.0), list(markers)
+    for agent, frame in (("alice", "agent"), ("bob", "bob_frame")):
+        marker = markers[agent]
+        assert marker.type == Marker.TRIANGLE_LIST and marker.ns == "tshirt" and marker.header.frame_id == frame
+        assert len(marker.points) > 0 and len(marker.points) % 3 == 0
+    assert client.set_parameters(marker_rate_hz=0.0)[0].successful
+
+
 def test_a_bad_message_to_one_agent_never_affects_another(crowd):
     client, _ = crowd
     walk = make_motion("walk", fps=30.0)

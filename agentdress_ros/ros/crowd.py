@@ -217,6 +217,9 @@ class Crowd:
             self.node.destroy_subscription(entity["arrival"])
         for pub in list(entity["points"].values()) + list(entity["mesh"].values()):
             self.node.destroy_publisher(pub)
+        if "marker" in entity:
+            with self.node._lock:  # the marker thread may be publishing on it
+                self.node.destroy_publisher(entity.pop("marker"))
         for key in [k for k in self.clouds if k[0] == name]:
             del self.clouds[key]
         self.topology.pop(name, None)
@@ -392,6 +395,31 @@ class Crowd:
             entity = self.entities.get(agent.name)
             if entity is not None and entity["installed"] is not agent:
                 self._install(agent)
+
+    def marker_jobs(self) -> list:
+        """Executor thread, at marker_rate_hz: (publisher getter, {garment: (vertices copy, faces)}, stamp,
+        frame_id) for the ARRIVAL_AGENTS agents nearest the viewer in view (a Marker costs milliseconds of Python
+        per garment, built on the node's marker thread: RViz sees the agents it is close to). Their `~/<a>/marker`
+        publishers are made here and dropped with the agent."""
+        from builtin_interfaces.msg import Time
+        from visualization_msgs.msg import Marker
+
+        node, jobs = self.node, []
+        near = sorted((a.distance, a.name) for a in self.scene.agents.values() if a.tier is not None and a.visible)
+        for _, name in near[:ARRIVAL_AGENTS]:
+            entity, agent = self.entities.get(name), self.scene.agents[name]
+            clouds = {g: self.clouds[(name, g)] for g in agent.garments if (name, g) in self.clouds}
+            if entity is None or not clouds:
+                continue
+            if "marker" not in entity:
+                with node._lock:
+                    entity["marker"] = node.create_publisher(Marker, f"~/{name}/marker", 10,
+                                                             event_callbacks=QUIET_PUBLISHER)
+            frames = {g: (cloud.vertices(), agent.garments[g].faces) for g, cloud in clouds.items()}
+            sec, nanosec = divmod(max(c.stamp_ns for c in clouds.values()), 1_000_000_000)
+            jobs.append((lambda e=entity: e.get("marker"), frames, Time(sec=sec, nanosec=nanosec),
+                         agent.spec.frame_id))
+        return jobs
 
     def keepalive(self):
         """Re-send the last clouds of agents in view (a display that joined late); culled agents stay silent."""

@@ -87,6 +87,11 @@ class SerializedCloud:
         self._vertices = np.frombuffer(self._buffer, dtype=self._endian + "f4", count=3 * self.n_vertices,
                                        offset=self._data_offset).reshape(self.n_vertices, 3)
         self.data = bytes(self._buffer)
+        self.stamp_ns = 0
+
+    def vertices(self) -> np.ndarray:
+        """(V, 3) float32 copy of the last frame written."""
+        return self._vertices.astype(np.float32)
 
     def set(self, vertices: np.ndarray, stamp_ns: int) -> bytes:
         """Write vertices (V, 3) and the stamp; returns the serialized cloud (also kept as `data`)."""
@@ -94,6 +99,7 @@ class SerializedCloud:
         struct.pack_into(self._endian + "iI", self._buffer, 4, int(stamp_ns // 1_000_000_000),
                          int(stamp_ns % 1_000_000_000))
         self.data = bytes(self._buffer)
+        self.stamp_ns = int(stamp_ns)
         return self.data
 
 

@@ -6,7 +6,8 @@ Topics (relative to the node, `~` = /agentdress_node):
   out  ~/<garment>/points   sensor_msgs/PointCloud2       every tick with a new pose (qos.points.*: best effort, 1)
   out  ~/<garment>/mesh     shape_msgs/Mesh               reliable, transient local: once per garment (re)build
   out  ~/body/points, ~/body/mesh                         only with publish_body
-  out  ~/marker             visualization_msgs/Marker     only with marker_rate_hz > 0 (one per garment, ns = name)
+  out  ~/marker             visualization_msgs/Marker     only with marker_rate_hz > 0 (one per garment, ns = name;
+                                                          a crowd: ~/<agent>/marker for the agents nearest the viewer)
   out  ~/status             std_msgs/String (JSON)        at status_rate_hz
 
 The status is JSON on a String rather than diagnostic_msgs on /diagnostics: its content is nested (timings,
@@ -544,17 +545,21 @@ class AgentDressNode(Node):
         self._marker_thread.start()
 
     def _on_marker(self):
-        if self.marker_pub is None or self.crowd is not None:  # crowd mode: clouds and meshes only
+        if self.marker_pub is None:
             return
         if not self._marker_thread.is_alive():  # it died of something the loop does not catch: start a new one
             self.stats.counts["marker_restarts"] += 1
             self._warn("marker_thread", "the marker thread had died: restarted")
             self._start_marker_thread()
         # Snapshot references only; the marker thread builds the messages (tens of ms each) off the executor.
-        frames = {n: (self.guard.last_good[n].copy(), self.models[n].faces) for n in self.models
-                  if n in self.guard.last_good}
-        stamp = self.clouds[next(iter(self.clouds))].header.stamp if self.clouds else self.get_clock().now().to_msg()
-        self._marker_job = (frames, stamp, self.config["frame_id"])
+        if self.crowd is not None:
+            self._marker_job = self.crowd.marker_jobs()
+        else:
+            frames = {n: (self.guard.last_good[n].copy(), self.models[n].faces) for n in self.models
+                      if n in self.guard.last_good}
+            stamp = (self.clouds[next(iter(self.clouds))].header.stamp if self.clouds
+                     else self.get_clock().now().to_msg())
+            self._marker_job = [(lambda: self.marker_pub, frames, stamp, self.config["frame_id"])]
         self._marker_event.set()
 
     def _marker_loop(self):
@@ -566,16 +571,20 @@ class AgentDressNode(Node):
             if job is None:
                 continue
             try:
-                self._publish_markers(*job)
+                for publisher, frames, stamp, frame_id in job:
+                    self._publish_markers(publisher, frames, stamp, frame_id)
             except Exception as error:  # the next job is a fresh try; the thread goes on
                 self._report_error("marker_thread", error)
 
-    def _publish_markers(self, frames, stamp, frame_id):
+    def _publish_markers(self, publisher, frames, stamp, frame_id):
+        """One Marker per garment of `frames` {name: (vertices, faces)} on `publisher()` (looked up under the lock:
+        None once the publisher is gone)."""
         for i, (name, (vertices, faces)) in enumerate(frames.items()):
             marker = make_marker(vertices, faces, name, i, frame_id, stamp, MARKER_COLORS[i % len(MARKER_COLORS)])
             with self._lock:
-                if self.marker_pub is not None:
-                    self.marker_pub.publish(marker)
+                pub = publisher()
+                if pub is not None:
+                    pub.publish(marker)
 
     def destroy_node(self):
         if self.crowd is not None:
