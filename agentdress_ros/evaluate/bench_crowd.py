@@ -2,9 +2,9 @@
 
 For each N the node runs as a child process in crowd mode (`agents: [agent_000, ...]`, T-shirt and trousers from the
 shipped databases, examples pose model), pinned to one core (`--node-cores`; its DDS threads share that core) while
-the pose publisher and this process run on the others; a second child process (`agentdress demo --agents N`) publishes every
-agent's JointState at `--pose-rate` and, in the spread run, a fixed viewer pose; this process listens to the nearest
-agent's T-shirt cloud and to ~/status. Two runs per N:
+the pose publisher and this process run on the others; a second child process (`agentdress demo --agents N`)
+publishes every agent's JointState at `--pose-rate` and, in the spread run, a fixed viewer pose; this process
+listens to the nearest agent's T-shirt cloud and to ~/status. Two runs per N:
   near    every agent within 3 m, LOD off (lod.enabled false): every agent fully dressed on every new pose
   spread  agents walking about a 30 m plaza, a viewer at its edge looking in, LOD, culling and the 8 ms budget on
   cpu     no DDS: the scene in this process, every agent given a new pose every tick and dressed at one level, its
@@ -63,8 +63,9 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
         prefix = ["taskset", "-c", ",".join(map(str, node_cores))] + prefix  # on the others
         os.sched_setaffinity(0, others)
     node = ChildProcess(prefix + node_args(params), env, log_dir / f"node_{mode}_{count}.log")
-    demo_args = (["taskset", "-c", ",".join(map(str, others))] if node_cores and others else []) + [sys.executable, "-m", "agentdress_ros.ros.crowd_demo", "--agents", str(count), "--rate",
-                 str(pose_rate)]
+    demo_args = ["taskset", "-c", ",".join(map(str, others))] if node_cores and others else []
+    demo_args += [sys.executable, "-m", "agentdress_ros.ros.crowd_demo", "--agents", str(count), "--rate",
+                  str(pose_rate)]
     demo_args += ["--near"] if mode == "near" else ["--viewer-at", *(str(v) for v in VIEWER)]
     demo = None
     try:
@@ -111,7 +112,8 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
                  for name, t in crowd["tiers"].items()}
         return {
             "agents": count, "mode": mode, "node_nice": node_nice, "node_cores": list(node_cores),
-            "realtime_priority": realtime_priority, "seconds": round(wall, 1), "pose_rate_hz": pose_rate, "rate_hz": rate_hz,
+            "realtime_priority": realtime_priority, "seconds": round(wall, 1), "pose_rate_hz": pose_rate,
+            "rate_hz": rate_hz,
             "budget_ms": budget_ms if mode == "spread" else None,
             "tick_ms": status["tick_ms"], "late_ticks": status["late_ticks"] - status0["late_ticks"],
             "tick_rate_hz": status["tick_rate_hz"],

@@ -35,7 +35,7 @@ from std_msgs.msg import Float32MultiArray
 from ..scene import AgentSpec, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tiers
 from ..motion.joint_names import JOINT_NAMES
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
-from .messages import JointStateReader, SerializedCloud, make_mesh
+from .messages import JointStateReader, SerializedCloud, make_mesh, stamp_from_ns
 from .params import ParameterError, validate
 
 # rclpy gives every publisher and subscription two QoS event handlers (incompatible QoS, incompatible type), and its
@@ -54,6 +54,16 @@ MAX_PENDING = 16  # serialized poses kept per agent between parses (the newest)
 
 def _never_called(msg):
     """Callback of the polled subscriptions (their node is never spun)."""
+
+
+def _take_all(sub, handle) -> list:
+    """Every message waiting on subscription `sub` (through its `handle`), oldest first, taken outside the
+    executor (serialized for a raw subscription)."""
+    taken = []
+    with handle:
+        while (message := handle.take_message(sub.msg_type, sub.raw)) is not None:
+            taken.append(message[0])
+    return taken
 
 __all__ = ["AGENT_KEYS", "Crowd", "agent_override_names", "scene_config"]
 
@@ -104,6 +114,7 @@ class Crowd:
             value = node._parameter_overrides[name].value
             self.overrides.setdefault(agent, {})[key] = validate_agent_key(key, value)
         self.entities: dict[str, dict] = {}  # agent -> {"subs": [...], "points": {g: pub}, "mesh": {g: pub}}
+        self.arrivals: dict = {}  # agent -> its JointState reader on the spun node (the agents answered on arrival)
         # The agents' inputs live on a second node that no executor spins: rclpy's executor walks every entity it
         # waits on for each message it hands out, so with hundreds of subscriptions (2 per agent) receiving cost
         # grew with the crowd. The tick takes what waited since the last one; only the agents it dresses cost
@@ -213,8 +224,8 @@ class Crowd:
             return
         for sub in entity["subs"]:
             self.inputs.destroy_subscription(sub)
-        if "arrival" in entity:
-            self.node.destroy_subscription(entity["arrival"])
+        if name in self.arrivals:
+            self.node.destroy_subscription(self.arrivals.pop(name))
         for pub in list(entity["points"].values()) + list(entity["mesh"].values()):
             self.node.destroy_publisher(pub)
         if "marker" in entity:
@@ -228,12 +239,7 @@ class Crowd:
     def _take(self, entity: dict, which: int) -> list:
         """Every message waiting on an agent's subscription `which` (0 joint states, serialized; 1 body shape),
         oldest first."""
-        sub, handle = entity["subs"][which], entity["handles"][which]
-        taken = []
-        with handle:
-            while (message := handle.take_message(sub.msg_type, sub.raw)) is not None:
-                taken.append(message[0])
-        return taken
+        return _take_all(entity["subs"][which], entity["handles"][which])
 
     def poll(self):
         """Tick, before the scene decides: take every agent's waiting poses, serialized. They are parsed only when
@@ -244,7 +250,7 @@ class Crowd:
         turn = self._shape_turn % SHAPE_POLL_TICKS
         for i, (name, entity) in enumerate(sorted(self.entities.items())):
             raw = self._take(entity, 0)
-            if raw and "arrival" not in entity:
+            if raw and name not in self.arrivals:
                 counts["joint_states_received"] += len(raw)
                 pending = entity["pending"]
                 pending.extend(raw)
@@ -279,22 +285,20 @@ class Crowd:
         the spun node, whose callback answers each pose as it arrives (at most once per half period: a flood is
         answered at the node's rate); an agent leaving that set loses it. The executor waits on few entities."""
         node = self.node
-        agents = list(self.scene.agents.values())
-        near = sorted((a.distance, a.name) for a in agents if a.tier is not None and a.visible)
-        answered = {name for _, name in near[:ARRIVAL_AGENTS]} if self.config["answer_on_arrival"] else set()
-        for agent in agents:
-            entity = self.entities.get(agent.name)
-            if entity is None:
-                continue
-            want = agent.name in answered
-            sub = entity.get("arrival")
-            if want and sub is None:
-                entity["arrival"] = node.create_subscription(
-                    JointState, f"{agent.name}/joint_states",
-                    node._guarded(f"{agent.name}/joint_states", lambda m, n=agent.name: self._on_arrival(n, m)),
+        answered = set(self._nearest_in_view()) if self.config["answer_on_arrival"] else set()
+        for name in [n for n in self.arrivals if n not in answered]:
+            node.destroy_subscription(self.arrivals.pop(name))
+        for name in answered:
+            if name not in self.arrivals and name in self.entities:
+                self.arrivals[name] = node.create_subscription(
+                    JointState, f"{name}/joint_states",
+                    node._guarded(f"{name}/joint_states", lambda m, n=name: self._on_arrival(n, m)),
                     node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION, raw=True)
-            elif not want and sub is not None:
-                node.destroy_subscription(entity.pop("arrival"))
+
+    def _nearest_in_view(self) -> list[str]:
+        """The ARRIVAL_AGENTS agents nearest the viewer in view, nearest first."""
+        near = sorted((a.distance, a.name) for a in self.scene.agents.values() if a.tier is not None and a.visible)
+        return [name for _, name in near[:ARRIVAL_AGENTS]]
 
     def _on_arrival(self, name: str, raw: bytes):
         self.node.stats.counts["joint_states_received"] += 1
@@ -310,16 +314,12 @@ class Crowd:
     def _answer_arrivals(self):
         """Scene hook, between the agents a tick dresses: poses that reached the agents answered on arrival while
         the tick runs are answered now instead of after it (their reader's callback would wait for the tick)."""
-        for name, entity in list(self.entities.items()):
-            sub = entity.get("arrival")
-            if sub is None:
-                continue
-            with sub.handle:
-                taken = sub.handle.take_message(sub.msg_type, sub.raw)
-            while taken is not None:  # oldest first, as the callback would have had them
-                self.node._guarded(f"{name}/joint_states", self._on_arrival)(name, taken[0])
-                with sub.handle:
-                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        for name, sub in list(self.arrivals.items()):
+            raws = _take_all(sub, sub.handle)
+            if raws:
+                answer = self.node._guarded(f"{name}/joint_states", self._on_arrival)
+                for raw in raws:  # oldest first, as the callback would have had them
+                    answer(name, raw)
 
     def _on_joint_state(self, name: str, names: list, positions: np.ndarray, stamp_ns: int):
         """One JointState (read by the agent's JointStateReader) into the agent's pose."""
@@ -401,12 +401,10 @@ class Crowd:
         frame_id) for the ARRIVAL_AGENTS agents nearest the viewer in view (a Marker costs milliseconds of Python
         per garment, built on the node's marker thread: RViz sees the agents it is close to). Their `~/<a>/marker`
         publishers are made here and dropped with the agent."""
-        from builtin_interfaces.msg import Time
         from visualization_msgs.msg import Marker
 
         node, jobs = self.node, []
-        near = sorted((a.distance, a.name) for a in self.scene.agents.values() if a.tier is not None and a.visible)
-        for _, name in near[:ARRIVAL_AGENTS]:
+        for name in self._nearest_in_view():
             entity, agent = self.entities.get(name), self.scene.agents[name]
             clouds = {g: self.clouds[(name, g)] for g in agent.garments if (name, g) in self.clouds}
             if entity is None or not clouds:
@@ -416,9 +414,8 @@ class Crowd:
                     entity["marker"] = node.create_publisher(Marker, f"~/{name}/marker", 10,
                                                              event_callbacks=QUIET_PUBLISHER)
             frames = {g: (cloud.vertices(), agent.garments[g].faces) for g, cloud in clouds.items()}
-            sec, nanosec = divmod(max(c.stamp_ns for c in clouds.values()), 1_000_000_000)
-            jobs.append((lambda e=entity: e.get("marker"), frames, Time(sec=sec, nanosec=nanosec),
-                         agent.spec.frame_id))
+            jobs.append((lambda e=entity: e.get("marker"), frames,
+                         stamp_from_ns(max(c.stamp_ns for c in clouds.values())), agent.spec.frame_id))
         return jobs
 
     def keepalive(self):

@@ -338,7 +338,7 @@ class Scene:
         The budget holds the whole tick: the agents get what is left of `budget_ms` after the time since
         `started` (the caller's perf_counter() when its tick began: taking input) and the caller's expected work
         after this call (`note_after_ms`)."""
-        start = time.perf_counter()
+        start, clock = time.perf_counter(), time.monotonic()
         started = start if started is None else started
         with self._cond:
             ready, self._ready = self._ready, []
@@ -395,6 +395,8 @@ class Scene:
                 self.between_agents()
                 between = time.perf_counter()
             agent = by_key[decision.key]
+            if agent.last_dressed >= clock:  # answered through between_agents during this tick: nothing left
+                continue
             tier_name = tiers[decision.tier].name
             if decision.degraded:
                 self.stats.degraded[tier_name] += 1
