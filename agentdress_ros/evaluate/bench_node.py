@@ -53,7 +53,7 @@ def latency_recorder(state: dict):
         state["seen"].add(stamp)
         if state["measuring"]:
             state["latency"].append((time.time_ns() - stamp) * 1e-6)
-            state["vertices"] = msg.width
+            state["vertices"] = getattr(msg, "width", None)
 
     return on_cloud
 
