@@ -59,3 +59,54 @@ def test_joint_state_reader_matches_the_deserializer_on_every_kind_of_message():
             assert names == list(msg.name)
             assert np.array_equal(positions, np.asarray(msg.position), equal_nan=True)
             assert stamp_ns == msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def test_serialized_bones_carry_the_skinning_transforms_and_reproduce_the_body_frame():
+    """A body frame's bone transforms through PoseArray bytes (SerializedBones, quaternions written by its kernel)
+    and back skin the binding of make_skin to the frame the node published (LBS, float32), within 1e-5 m; the
+    quaternions are unit with w >= 0, also for rotations near pi (Shepperd's pivots)."""
+    from geometry_msgs.msg import PoseArray
+
+    from agentdress_ros.body import AnnyBody
+    from agentdress_ros.body.kinematics import linear_blend_skinning
+    from agentdress_ros.motion.rotations import rotvec_to_matrix
+    from agentdress_ros.ros.garment_models import BodyModel, skin_binding
+    from agentdress_ros.ros.messages import SerializedBones, bones_to_transforms, make_skin, skin_to_arrays
+
+    body = AnnyBody()
+    model = BodyModel(body)
+    rng = np.random.default_rng(3)
+    bones = SerializedBones("agent", body.n_bones)
+    rest, indices, weights = skin_to_arrays(make_skin(*skin_binding(model)))
+    assert rest.shape == (13380, 3) and indices.shape == weights.shape == (13380, 4)
+    for stamp_ns in (1, 1_796_000_000_123_456_789):
+        frame = model.synthesize(rng.normal(0.0, 0.8, (body.n_bones, 3)), rng.normal(0.0, 1.0, 3)).copy()
+        msg = deserialize_message(bones.set(model.transforms, stamp_ns), PoseArray)
+        assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == divmod(stamp_ns, 1_000_000_000)
+        assert msg.header.frame_id == "agent"
+        skinned = linear_blend_skinning(rest, indices.astype(np.int64), weights, bones_to_transforms(msg),
+                                        np.empty_like(rest))
+        assert np.abs(skinned - frame).max() < 1e-5
+    # rotations of every kind, pi included: each quaternion is the rotation's, unit, with w >= 0
+    axes = rng.normal(size=(31, 3))
+    angles = np.concatenate([[np.pi, np.pi - 1e-7, 0.0, 1e-8], rng.uniform(0, np.pi, 27)])
+    transforms = np.zeros((31, 3, 4))
+    transforms[:, :, :3] = rotvec_to_matrix(axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None])
+    transforms[:, :, 3] = rng.normal(size=(31, 3))
+    msg = deserialize_message(SerializedBones("f", 31).set(transforms, 0), PoseArray)
+    q = np.array([(p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w) for p in msg.poses])
+    assert np.allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12) and (q[:, 3] >= 0).all()
+    assert np.abs(bones_to_transforms(msg) - transforms).max() < 1e-6
+
+
+def test_skin_message_layout_is_checked():
+    from std_msgs.msg import Float32MultiArray
+
+    from agentdress_ros.ros.messages import make_skin, skin_to_arrays
+
+    msg = make_skin(np.zeros((5, 3)), np.zeros((5, 4), int), np.ones((5, 4)) / 4)
+    msg.data = msg.data[:-1]
+    with pytest.raises(ValueError, match="holds 54 values, its layout says 55"):
+        skin_to_arrays(msg)
+    with pytest.raises(ValueError, match="not a skin message"):
+        skin_to_arrays(Float32MultiArray(data=[1.0, 2.0]))

@@ -202,6 +202,49 @@ def test_the_page_draws_the_walking_dressed_agent_with_three_webgl(scene, browse
         context.close()
 
 
+def test_the_page_skins_the_body_exactly_as_the_node_did(scene, browser):
+    """The body streams as its binding once and its bone transforms per frame (31 x 12 floats instead of 13,380 x 3);
+    the page skins it on the GPU. What the page draws (three.js' CPU twin of its skinning shader) is the node's own
+    body cloud of the same stamp, within 0.05 mm; the garments still stream as vertices."""
+    from sensor_msgs.msg import PointCloud2
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from agentdress_ros.ros.harness import ros_node, spin_until
+    from agentdress_ros.ros.messages import cloud_to_vertices
+
+    url, _ = scene
+    state = _state(url)
+    assert state["agentdress_node/body"]["skinned"] and not state["agentdress_node/tshirt"]["skinned"], state
+    clouds = {}
+
+    def on_cloud(msg):
+        clouds[msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec] = cloud_to_vertices(msg)
+
+    with ros_node("client_body_check", DOMAIN_ID) as (client, executor):
+        client.create_subscription(PointCloud2, "/agentdress_node/body/points", on_cloud, QoSProfile(
+            depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT))
+        assert spin_until(executor, lambda: len(clouds) > 20, 60.0), "no body clouds from the node"
+        context, page, errors = _open(browser, url)
+        try:
+            assert page.evaluate("agentdress.meshes['agentdress_node/body'].skinned")
+            compared = []
+            for _ in range(40):
+                got = page.evaluate("(() => ({stamp: agentdress.meshes['agentdress_node/body'].stamp, "
+                                    "positions: agentdress.positions('agentdress_node/body')}))()")
+                spin_until(executor, lambda: False, 0.3)  # the clouds that waited meanwhile
+                match = [s for s in clouds if got["stamp"] is not None and abs(s - got["stamp"]) < 1e-6]
+                if match:
+                    page_body = np.asarray(got["positions"], dtype=np.float64).reshape(-1, 3)
+                    compared.append(float(np.abs(page_body - clouds[match[0]]).max()))
+                    if len(compared) >= 3:
+                        break
+            assert len(compared) >= 3, f"no page frame matched a node cloud's stamp ({len(clouds)} clouds)"
+            assert max(compared) < 5e-5, compared
+            assert not errors, errors
+        finally:
+            context.close()
+
+
 def test_enter_vr_runs_the_xr_render_loop(scene, browser):
     url, _ = scene
     context, page, errors = _open(browser, url, xr=True)

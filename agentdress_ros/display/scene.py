@@ -4,7 +4,12 @@ nodes' status; thread-safe (the ROS thread writes, the server's event loop reads
 Binary messages for the client (web/src/frames.js reads them): uint32 little-endian header length H, H bytes of
 JSON padded with spaces to a multiple of 4, then the payload.
   mesh:  {"type": "mesh", "key", "agent", "garment", "color", "faces": F, "vertices": V}; F*3 uint32, V*3 float32
-  frame: {"type": "frame", "seq", "meshes": [{"key", "vertices": V, "offset"}]}; each mesh's V*3 float32 at offset
+         a skinned mesh (the body: its skin and bones topics) adds "skin": K, "bones": B and, after the vertices
+         (its rest), V*K uint16 bone indices (zero-padded to 4 bytes) and V*K float32 weights
+  frame: {"type": "frame", "seq", "meshes": [{"key", "vertices": V | "bones": B, "offset", "stamp"}]} (stamp: the
+         frame's ROS stamp in seconds, or null);
+         at each offset the mesh's V*3 float32 vertices, or a skinned mesh's B*12 float32 bone transforms (3x4,
+         row-major): the client skins the rest itself, so a 13,380-vertex body costs 1.5 kB a frame, not 160 kB
 """
 from __future__ import annotations
 
@@ -32,11 +37,12 @@ def pack(header: dict, *blobs: bytes) -> bytes:
 
 
 class _Mesh:
-    __slots__ = ("agent", "garment", "faces", "vertices", "frames", "generation", "stamp")
+    __slots__ = ("agent", "garment", "faces", "vertices", "frames", "generation", "stamp", "bones")
 
     def __init__(self, agent, garment, faces, vertices, generation):
         self.agent, self.garment, self.faces, self.vertices = agent, garment, faces, vertices
         self.frames, self.generation, self.stamp = 0, generation, None
+        self.bones = None  # (B, 12) float32 of the last frame of a skinned mesh
 
 
 class DisplayScene:
@@ -48,6 +54,7 @@ class DisplayScene:
         self._meshes: dict[str, _Mesh] = {}
         self._status: dict[str, tuple[int, dict]] = {}  # source -> (version, status)
         self._generation = 0
+        self._skins: dict[str, tuple] = {}  # key -> (rest (V, 3) f4, indices (V, K) u2, weights (V, K) f4)
         self.seq = 0
         self._listeners: list = []
 
@@ -75,13 +82,45 @@ class DisplayScene:
             self.seq += 1
         self._changed()
 
+    def set_skin(self, agent: str, garment: str, rest, indices, weights):
+        """The binding of a skinned mesh: rest (V, 3), bone indices (V, K), weights (V, K). From then on its frames
+        are bone transforms (set_bones); a client gets the mesh again with it."""
+        rest = np.ascontiguousarray(rest, dtype="<f4").reshape(-1, 3)
+        indices = np.ascontiguousarray(indices, dtype="<u2").reshape(len(rest), -1)
+        weights = np.ascontiguousarray(weights, dtype="<f4").reshape(indices.shape)
+        key = mesh_key(agent, garment)
+        with self._lock:
+            self._skins[key] = (rest, indices, weights)
+            mesh = self._meshes.get(key)
+            if mesh is not None:
+                self._generation += 1
+                mesh.generation, mesh.bones = self._generation, None
+            self.seq += 1
+        self._changed()
+
+    def set_bones(self, agent: str, garment: str, transforms, stamp: float | None = None) -> bool:
+        """A frame of a skinned mesh: its bone transforms (B, 3, 4); False while the mesh or its skin is missing."""
+        bones = np.ascontiguousarray(transforms, dtype="<f4").reshape(-1, 12)
+        key = mesh_key(agent, garment)
+        with self._lock:
+            mesh = self._meshes.get(key)
+            skin = self._skins.get(key)
+            if mesh is None or skin is None or len(skin[0]) != len(mesh.vertices) or int(skin[1].max()) >= len(bones):
+                return False
+            mesh.bones, mesh.stamp = bones, stamp
+            mesh.frames += 1
+            self.seq += 1
+        self._changed()
+        return True
+
     def set_vertices(self, agent: str, garment: str, vertices, stamp: float | None = None) -> bool:
         """A frame (V, 3) of a known mesh; held back (False) when it does not fit the topology (a garment rebuilt
-        at another vertex count whose new mesh has not arrived yet)."""
+        at another vertex count whose new mesh has not arrived yet), or for a skinned mesh (its frames are bones)."""
         vertices = np.ascontiguousarray(vertices, dtype="<f4").reshape(-1, 3)
         with self._lock:
-            mesh = self._meshes.get(mesh_key(agent, garment))
-            if mesh is None or len(vertices) != len(mesh.vertices):
+            key = mesh_key(agent, garment)
+            mesh = self._meshes.get(key)
+            if mesh is None or len(vertices) != len(mesh.vertices) or key in self._skins:
                 return False
             mesh.vertices, mesh.stamp = vertices, stamp
             mesh.frames += 1
@@ -93,6 +132,7 @@ class DisplayScene:
         with self._lock:
             for key in [k for k, m in self._meshes.items() if m.agent == agent]:
                 del self._meshes[key]
+                self._skins.pop(key, None)
             self.seq += 1
         self._changed()
 
@@ -104,10 +144,11 @@ class DisplayScene:
 
     # ---- readers -------------------------------------------------------------------------------------------------
     def summary(self) -> dict:
-        """{key: {"agent", "garment", "vertices", "faces", "frames", "stamp"}} (tests, status lines)."""
+        """{key: {"agent", "garment", "vertices", "faces", "frames", "stamp", "skinned"}} (tests, status lines)."""
         with self._lock:
             return {k: {"agent": m.agent, "garment": m.garment, "vertices": len(m.vertices), "faces": len(m.faces),
-                        "frames": m.frames, "stamp": m.stamp} for k, m in sorted(self._meshes.items())}
+                        "frames": m.frames, "stamp": m.stamp, "skinned": k in self._skins}
+                    for k, m in sorted(self._meshes.items())}
 
     def updates(self, seen: dict) -> tuple[list[bytes], list[str], bytes | None, list[dict]]:
         """What a client that has seen `seen` still lacks: (mesh messages, removed keys, one frame message or None,
@@ -123,16 +164,33 @@ class DisplayScene:
                 frames.pop(key, None)
             offset = 0
             for key, mesh in self._meshes.items():
+                skin = self._skins.get(key)
+                if skin is not None and len(skin[0]) != len(mesh.vertices):
+                    skin = None  # a skin of another topology: the mesh's new skin is on the way
                 if topology.get(key) != mesh.generation:
                     topology[key], frames[key] = mesh.generation, mesh.frames
                     header = {"type": "mesh", "key": key, "agent": mesh.agent, "garment": mesh.garment,
                               "color": COLORS.get(mesh.garment, OTHER_COLOR), "faces": len(mesh.faces),
                               "vertices": len(mesh.vertices)}
-                    meshes.append(pack(header, mesh.faces.tobytes(), mesh.vertices.tobytes()))
-                elif frames.get(key) != mesh.frames:
+                    blobs = [mesh.faces.tobytes(), mesh.vertices.tobytes()]
+                    if skin is not None:
+                        rest, indices, weights = skin
+                        header.update(skin=indices.shape[1], bones=int(indices.max()) + 1)
+                        blobs = [mesh.faces.tobytes(), rest.tobytes(), indices.tobytes(),
+                                 b"\0" * (-indices.nbytes % 4), weights.tobytes()]
+                    meshes.append(pack(header, *blobs))
+                    if skin is not None and mesh.bones is not None:
+                        frames[key] = -1  # its last pose follows in this update's frame
+                if frames.get(key) != mesh.frames and (skin is None or mesh.bones is not None):
                     frames[key] = mesh.frames
-                    blob = mesh.vertices.tobytes()
-                    frame_meshes.append({"key": key, "vertices": len(mesh.vertices), "offset": offset})
+                    if skin is not None:
+                        blob = mesh.bones.tobytes()
+                        frame_meshes.append({"key": key, "bones": len(mesh.bones), "offset": offset,
+                                             "stamp": mesh.stamp})
+                    else:
+                        blob = mesh.vertices.tobytes()
+                        frame_meshes.append({"key": key, "vertices": len(mesh.vertices), "offset": offset,
+                                             "stamp": mesh.stamp})
                     frame_parts.append(blob)
                     offset += len(blob)
             for source, (version, status) in self._status.items():

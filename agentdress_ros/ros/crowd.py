@@ -7,6 +7,8 @@ Active when the parameter `agents` lists names. Per agent `<a>` (topics relative
   out  ~/<a>/<garment>/points    sensor_msgs/PointCloud2     (qos.points.*), stamped with the answered JointState
   out  ~/<a>/<garment>/mesh      shape_msgs/Mesh             reliable, transient local, once per (re)build
   out  ~/<a>/body/points|mesh    with publish_body
+  out  ~/<a>/body/skin|bones     with publish_body: the body's binding (transient local, per build and shape) and
+                                 each frame's bone transforms (the node's single-agent docstring says more)
 and for the scene:
   in   <viewer_topic>            geometry_msgs/PoseStamped   the headset, in the agents' frame (or moved there by
                                                              the fixed `viewer_offset` x, y, z, yaw)
@@ -25,7 +27,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, PointCloud2
@@ -35,7 +37,8 @@ from std_msgs.msg import Float32MultiArray
 from ..scene import AgentSpec, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tiers
 from ..motion.joint_names import JOINT_NAMES
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
-from .messages import JointStateReader, SerializedCloud, make_mesh, stamp_from_ns
+from .garment_models import skin_binding
+from .messages import JointStateReader, SerializedBones, SerializedCloud, make_mesh, make_skin, stamp_from_ns
 from .params import ParameterError, validate
 
 # rclpy gives every publisher and subscription two QoS event handlers (incompatible QoS, incompatible type), and its
@@ -125,6 +128,7 @@ class Crowd:
         self.scene.before_dress = self._parse_pending
         self.scene.between_agents = self._answer_arrivals
         self.clouds: dict[tuple, SerializedCloud] = {}  # (agent, garment) -> its last cloud, serialized
+        self.bones: dict[tuple, SerializedBones] = {}  # (agent, garment) -> its last bone transforms, serialized
         self.topology: dict[str, dict] = {}  # agent -> {garment: Mesh}, made on the worker
         self.viewer_sub = None
         if self.config["viewer_topic"]:
@@ -190,7 +194,8 @@ class Crowd:
                 inputs.create_subscription(Float32MultiArray, f"{name}/body_shape", _never_called,
                                            self.node._qos("shape"), event_callbacks=QUIET_SUBSCRIPTION)]
         self.entities[name] = {"subs": subs, "handles": [sub.handle for sub in subs], "pending": [],
-                               "reader": JointStateReader(), "points": {}, "mesh": {}, "installed": None}
+                               "reader": JointStateReader(), "points": {}, "mesh": {}, "installed": None,
+                               "skin": {}, "bones": {}, "skin_generation": None}
 
     def _prepare(self, agent):
         """Worker thread: topology messages of a built agent."""
@@ -207,6 +212,10 @@ class Crowd:
             node.destroy_publisher(entity["points"].pop(g))
             node.destroy_publisher(entity["mesh"].pop(g))
             self.clouds.pop((agent.name, g), None)
+        for g in [g for g in entity["skin"] if g not in agent.garments or skin_binding(agent.garments[g].base) is None]:
+            node.destroy_publisher(entity["skin"].pop(g))
+            node.destroy_publisher(entity["bones"].pop(g))
+            self.bones.pop((agent.name, g), None)
         for g in agent.garments:
             if g not in entity["points"]:
                 entity["points"][g] = node.create_publisher(PointCloud2, f"~/{agent.name}/{g}/points",
@@ -216,7 +225,13 @@ class Crowd:
             mesh = self.topology.get(agent.name, {}).get(g)
             if mesh is not None:
                 entity["mesh"][g].publish(mesh)
+            if g not in entity["skin"] and skin_binding(agent.garments[g].base) is not None:
+                entity["skin"][g] = node.create_publisher(Float32MultiArray, f"~/{agent.name}/{g}/skin",
+                                                          node.topology_qos, event_callbacks=QUIET_PUBLISHER)
+                entity["bones"][g] = node.create_publisher(PoseArray, f"~/{agent.name}/{g}/bones", node._qos("points"),
+                                                           event_callbacks=QUIET_PUBLISHER)
         entity["installed"] = agent
+        entity["skin_generation"] = None  # sent with the agent's next frame
 
     def _destroy(self, name: str):
         entity = self.entities.pop(name, None)
@@ -226,13 +241,16 @@ class Crowd:
             self.inputs.destroy_subscription(sub)
         if name in self.arrivals:
             self.node.destroy_subscription(self.arrivals.pop(name))
-        for pub in list(entity["points"].values()) + list(entity["mesh"].values()):
+        for pub in [*entity["points"].values(), *entity["mesh"].values(), *entity["skin"].values(),
+                    *entity["bones"].values()]:
             self.node.destroy_publisher(pub)
         if "marker" in entity:
             with self.node._lock:  # the marker thread may be publishing on it
                 self.node.destroy_publisher(entity.pop("marker"))
         for key in [k for k in self.clouds if k[0] == name]:
             del self.clouds[key]
+        for key in [k for k in self.bones if k[0] == name]:
+            del self.bones[key]
         self.topology.pop(name, None)
 
     # ---- inputs ---------------------------------------------------------------------------------------------
@@ -378,6 +396,22 @@ class Crowd:
             if cloud is None or cloud.frame_id != frame_id or cloud.n_vertices != len(vertices):
                 cloud = self.clouds[key] = SerializedCloud(frame_id, len(vertices))
             entity["points"][g].publish(cloud.set(vertices, stamp_ns))
+            if g in entity["bones"]:
+                self._publish_bones(agent, entity, g, stamp_ns)
+
+    def _publish_bones(self, agent, entity, g: str, stamp_ns: int):
+        """The frame's bone transforms of a plain LBS garment (the body); its binding first when the agent's shape
+        changed since it was last sent (the frame was skinned from the new rest)."""
+        model = agent.garments[g].base
+        if entity["skin_generation"] != agent.shape_generation:
+            for name, pub in entity["skin"].items():
+                pub.publish(make_skin(*agent.garments[name].base.skin_binding()))
+            entity["skin_generation"] = agent.shape_generation
+        key = (agent.name, g)
+        bones = self.bones.get(key)
+        if bones is None or bones.frame_id != agent.spec.frame_id or bones.n_bones != len(model.transforms):
+            bones = self.bones[key] = SerializedBones(agent.spec.frame_id, len(model.transforms))
+        entity["bones"][g].publish(bones.set(model.transforms, stamp_ns))
 
     def tick(self) -> dict:
         started = time.perf_counter()
@@ -424,6 +458,9 @@ class Crowd:
             agent = self.scene.agents.get(name)
             if agent is not None and agent.visible and name in self.entities:
                 self.entities[name]["points"][g].publish(cloud.data)
+                bones = self.bones.get((name, g))
+                if bones is not None and g in self.entities[name]["bones"]:
+                    self.entities[name]["bones"][g].publish(bones.data)
 
     def status(self) -> dict:
         status = self.scene.status()

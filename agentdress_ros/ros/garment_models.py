@@ -112,6 +112,7 @@ class _SkinnedBase:
         self._skin_indices = np.ascontiguousarray(skin_indices, dtype=np.int64)
         self._skin_weights = np.ascontiguousarray(skin_weights, dtype=np.float32)
         self._cache = _shape_cache(body)
+        self.transforms = None
         self.set_shape(beta)
 
     @property
@@ -132,8 +133,14 @@ class _SkinnedBase:
     def synthesize(self, rotvecs, root_translation) -> np.ndarray:
         """rotvecs (B, 3), root_translation (3,) -> posed vertices (V, 3) float32 (an internal buffer)."""
         transforms, _ = self.body.pose(self.shape, rotvecs, root_translation)
+        self.transforms = transforms  # (B, 3, 4) of this frame: a display client may skin the rest itself
         return linear_blend_skinning(self.rest, self._skin_indices, self._skin_weights,
                                      transforms.astype(np.float32), self._out)
+
+    def skin_binding(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rest (V, 3) float32 on the current shape, bone indices (V, K), weights (V, K)): with `transforms` of a
+        frame, what reproduces that frame exactly (messages.make_skin)."""
+        return self.rest, self._skin_indices, self._skin_weights
 
     def reset(self) -> None:
         """LBS keeps no history."""
@@ -142,6 +149,11 @@ class _SkinnedBase:
         twin = copy.copy(self)  # shares faces, skin weights, the garment template; set_shape rebinds the rest
         twin._out = np.empty_like(self._out)
         return twin
+
+
+def skin_binding(model):
+    """A plain LBS model's skin_binding() (rest, indices, weights), else None (a database's engine, a display model)."""
+    return model.skin_binding() if isinstance(model, _SkinnedBase) else None
 
 
 class SkinnedGarmentModel(_SkinnedBase):

@@ -6,6 +6,11 @@ Topics (relative to the node, `~` = /agentdress_node):
   out  ~/<garment>/points   sensor_msgs/PointCloud2       every tick with a new pose (qos.points.*: best effort, 1)
   out  ~/<garment>/mesh     shape_msgs/Mesh               reliable, transient local: once per garment (re)build
   out  ~/body/points, ~/body/mesh                         only with publish_body
+  out  ~/body/skin               std_msgs/Float32MultiArray    reliable, transient local: the body's rest vertices,
+                                                          bone indices and weights (messages.make_skin), once per
+                                                          (re)build and shape
+  out  ~/body/bones              geometry_msgs/PoseArray       with each body frame: its bone transforms, from which
+                                                          a display client skins the body itself (exactly the cloud)
   out  ~/marker             visualization_msgs/Marker     only with marker_rate_hz > 0 (one per garment, ns = name;
                                                           a crowd: ~/<agent>/marker for the agents nearest the viewer)
   out  ~/status             std_msgs/String (JSON)        at status_rate_hz
@@ -32,6 +37,7 @@ import time
 
 import numpy as np
 import rclpy
+from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -43,9 +49,10 @@ from std_msgs.msg import Float32MultiArray, String
 from visualization_msgs.msg import Marker
 
 from ..garment import TEMPLATES
-from .garment_models import GarmentDatabaseError
+from .garment_models import GarmentDatabaseError, skin_binding
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
-from .messages import make_marker, make_mesh, make_point_cloud, set_cloud_vertices, stamp_from_ns
+from .messages import (SerializedBones, make_marker, make_mesh, make_point_cloud, make_skin, set_cloud_vertices,
+                       stamp_from_ns)
 from .params import PARAMETERS, ParameterError, check_garment_config, database_file_problem, validate
 from .runtime import (GarmentSpec, ModelSet, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set,
                       scene_key)
@@ -147,6 +154,7 @@ class AgentDressNode(Node):
             f"{n} ({m.kind}, {m.n_vertices} vertices)" for n, m in model_set.models.items()))
         self.models, self.model_set = {}, None
         self.point_pubs, self.mesh_pubs, self.clouds = {}, {}, {}
+        self.skin_pubs, self.bone_pubs, self.bones = {}, {}, {}  # plain LBS models (the body): skin + bones topics
         # Parameter values of the running model set, and of the sets asked for (by scene key) until one is built.
         self._running_parameters = self._scene_parameters()
         self._requested_parameters: dict[tuple, list[Parameter]] = {}
@@ -302,6 +310,15 @@ class AgentDressNode(Node):
                 self.mesh_pubs[name].publish(mesh)
                 self.guard.reset(name)  # a new topology: the last good frame of the old one no longer fits
                 self.clouds.pop(name, None)
+            for name, model in model_set.models.items():  # every install: a shape refit moves the rest too
+                binding = skin_binding(model)
+                if binding is None:
+                    continue
+                if name not in self.skin_pubs:
+                    self.skin_pubs[name] = self.create_publisher(Float32MultiArray, f"~/{name}/skin", TOPOLOGY_QOS)
+                    self.bone_pubs[name] = self.create_publisher(PoseArray, f"~/{name}/bones", points_qos)
+                self.skin_pubs[name].publish(make_skin(*binding))
+                self.bones.pop(name, None)
             self.models, self.model_set = dict(model_set.models), model_set
             self._dirty = True
             for name in [n for n in self.point_pubs if n not in model_set.models]:
@@ -309,6 +326,10 @@ class AgentDressNode(Node):
                 self.guard.reset(name)
                 self.destroy_publisher(self.point_pubs.pop(name))
                 self.destroy_publisher(self.mesh_pubs.pop(name))
+            for name in [n for n in self.skin_pubs if skin_binding(model_set.models.get(n)) is None]:
+                self.bones.pop(name, None)
+                self.destroy_publisher(self.skin_pubs.pop(name))
+                self.destroy_publisher(self.bone_pubs.pop(name))
         parameters = self._requested_parameters.pop(scene_key(model_set.scene), None)
         if parameters is not None:
             self._running_parameters = parameters
@@ -439,6 +460,8 @@ class AgentDressNode(Node):
             if keepalive > 0 and now - self._last_publish >= 1.0 / keepalive and self.clouds:
                 for name, cloud in self.clouds.items():
                     self._publish_cloud(name, cloud)
+                for name, bones in self.bones.items():
+                    self.bone_pubs[name].publish(bones.data)
                 self.stats.counts["keepalive_frames"] += 1
                 self._last_publish = now
             self.stats.counts["idle_ticks"] += 1
@@ -463,6 +486,8 @@ class AgentDressNode(Node):
                                                     "re-sending the last good frame")
             if frame is not None:
                 self._publish_frame(name, frame, stamp)
+                if name in self.bone_pubs and not problem:
+                    self._publish_bones(name, model.transforms, stamp)
         self.stats.counts["published_frames"] += 1
         self.stats.counts["computed_ticks"] += 1
         self.stats.synthesis_ms.append(1e3 * synthesis)
@@ -500,6 +525,12 @@ class AgentDressNode(Node):
             return
         self.clouds[name] = cloud
         self._publish_cloud(name, cloud)
+
+    def _publish_bones(self, name: str, transforms, stamp):
+        bones = self.bones.get(name)
+        if bones is None or bones.frame_id != self.config["frame_id"] or bones.n_bones != len(transforms):
+            bones = self.bones[name] = SerializedBones(self.config["frame_id"], len(transforms))
+        self.bone_pubs[name].publish(bones.set(transforms, stamp.sec * 1_000_000_000 + stamp.nanosec))
 
     def _publish_cloud(self, name: str, cloud):
         try:

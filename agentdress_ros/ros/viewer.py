@@ -5,7 +5,9 @@ The bridge discovers every `shape_msgs/Mesh` topic named `<prefix>/<garment>/mes
 agent's `/agentdress_node/tshirt/mesh`, a crowd's `/agentdress_node/<agent>/tshirt/mesh`, any other node's) and the
 matching `<prefix>/<garment>/points`; the agent is the prefix. Each node's `~/status` goes to the page's panel. A
 shape slider publishes `std_msgs/Float32MultiArray` on the agent's body-shape topic: a crowd agent's
-`/<agent>/body_shape` when the graph has it, else `/body_shape` (the single agent's default).
+`/<agent>/body_shape` when the graph has it, else `/body_shape` (the single agent's default). A mesh with
+`<prefix>/<garment>/skin` and `.../bones` topics (the body) is streamed as bone transforms instead of its points: the
+page skins it on the GPU (three.js SkinnedMesh), exactly as the node did.
 
 Security: the page, its files and the socket answer 403 without the random token printed in the URL at start; the
 certificate is self-signed, made at first start (~/.config/agentdress/tls), so a browser asks once to accept it.
@@ -44,6 +46,8 @@ class RosBridge:
                                      reliability=ReliabilityPolicy.BEST_EFFORT)
         self.shape_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
         self.subscribed: set[str] = set()
+        self.point_subs: dict[str, object] = {}  # mesh topic -> its points subscription (until a skin shows up)
+        self.skinned: set[str] = set()
         self.status_sources: set[str] = set()
         self.shape_publishers: dict = {}
         self.discover()
@@ -59,13 +63,18 @@ class RosBridge:
         topics = dict(self.node.get_topic_names_and_types())
         for topic, types in topics.items():
             match = MESH_TOPIC.match(topic)
-            if not match or "shape_msgs/msg/Mesh" not in types or topic in self.subscribed:
+            if not match or "shape_msgs/msg/Mesh" not in types:
                 continue
             prefix, garment = match.groups()
             if self.filter and not (prefix == self.filter or prefix.startswith(self.filter + "/")):
                 continue
-            self.subscribed.add(topic)
             agent = prefix.lstrip("/")
+            if topic not in self.skinned and f"{prefix}/{garment}/skin" in topics \
+                    and f"{prefix}/{garment}/bones" in topics:
+                self._subscribe_skin(topic, prefix, agent, garment)
+            if topic in self.subscribed:
+                continue
+            self.subscribed.add(topic)
 
             def on_mesh(msg, agent=agent, garment=garment):
                 vertices, faces = mesh_to_arrays(msg)
@@ -76,7 +85,9 @@ class RosBridge:
                 self.scene.set_vertices(agent, garment, cloud_to_vertices(msg), stamp)
 
             self.node.create_subscription(Mesh, topic, on_mesh, self.mesh_qos)
-            self.node.create_subscription(PointCloud2, f"{prefix}/{garment}/points", on_points, self.points_qos)
+            if topic not in self.skinned:
+                self.point_subs[topic] = self.node.create_subscription(
+                    PointCloud2, f"{prefix}/{garment}/points", on_points, self.points_qos)
             # the status of the node that publishes it: the prefix itself, or its parent for a crowd agent
             for source in (prefix, prefix.rsplit("/", 1)[0]):
                 status_topic = f"{source}/status"
@@ -84,6 +95,34 @@ class RosBridge:
                     self.status_sources.add(source)
                     self.node.create_subscription(String, status_topic, lambda msg, s=source: self._on_status(s, msg),
                                                   10)
+
+    def _subscribe_skin(self, topic: str, prefix: str, agent: str, garment: str):
+        """Stream a skinned mesh as its binding and bone transforms; its points are no longer taken."""
+        from geometry_msgs.msg import PoseArray
+        from std_msgs.msg import Float32MultiArray
+
+        from .messages import serialized_bones_to_transforms, skin_to_arrays
+
+        def on_skin(msg):
+            try:
+                self.scene.set_skin(agent, garment, *skin_to_arrays(msg))
+            except ValueError as error:
+                self.node.get_logger().warning(f"{prefix}/{garment}/skin: {error}", throttle_duration_sec=5.0)
+
+        def on_bones(data):
+            try:
+                transforms, stamp = serialized_bones_to_transforms(data)
+            except ValueError as error:
+                self.node.get_logger().warning(f"{prefix}/{garment}/bones: {error}", throttle_duration_sec=5.0)
+                return
+            self.scene.set_bones(agent, garment, transforms, stamp)
+
+        self.skinned.add(topic)
+        points = self.point_subs.pop(topic, None)
+        if points is not None:
+            self.node.destroy_subscription(points)
+        self.node.create_subscription(Float32MultiArray, f"{prefix}/{garment}/skin", on_skin, self.mesh_qos)
+        self.node.create_subscription(PoseArray, f"{prefix}/{garment}/bones", on_bones, self.points_qos, raw=True)
 
     def _on_status(self, source: str, msg):
         try:

@@ -12,7 +12,16 @@ const stats = {
 };
 window.agentdress = stats; // read by the tests and handy in the console
 // a mesh's current vertices (V * 3 numbers, the node's Z-up metres) and the nodes' status, for tests and scripts
-stats.positions = (key) => Array.from(meshes.get(key)?.mesh.geometry.attributes.position.array || []);
+// (a skinned mesh's as the page skins them: three.js' CPU twin of its skinning shader)
+stats.positions = (key) => {
+  const mesh = meshes.get(key)?.mesh;
+  if (!mesh) return [];
+  if (!mesh.isSkinnedMesh) return Array.from(mesh.geometry.attributes.position.array);
+  const out = [];
+  const v = new THREE.Vector3();
+  for (let i = 0; i < mesh.geometry.attributes.position.count; i++) out.push(...mesh.getVertexPosition(i, v).toArray());
+  return out;
+};
 stats.status = () => Object.fromEntries(panel.status);
 
 // A software rasteriser (SwiftShader, llvmpipe: no GPU) draws without multisampling at one pixel per CSS pixel.
@@ -68,15 +77,43 @@ renderer.xr.addEventListener('sessionend', () => { world.position.set(0, 0, 0); 
 const meshes = new Map(); // key "agent/garment" -> {mesh, agent, garment, dirty}
 const panel = new Panel(document.getElementById('panel'), (agent, values) => send({ type: 'shape', agent, values }));
 
-function setMesh(header, faces, vertices) {
+// A skinned mesh (the body): its rest, bone indices and weights once; each frame only its bone transforms, which
+// the GPU applies (linear blend skinning, as the node does). Each bone's matrixWorld is the frame's rest-to-posed
+// transform; the bones sit outside the scene graph, so three.js never recomputes them, and the detached bind
+// (identity) keeps the skinned vertices in the mesh's own (the node's) frame.
+function skinnedMesh(geometry, material, header, indices, weights) {
+  geometry.setAttribute('skinIndex', new THREE.Uint16BufferAttribute(new Uint16Array(indices), header.skin));
+  geometry.setAttribute('skinWeight', new THREE.Float32BufferAttribute(new Float32Array(weights), header.skin));
+  const bones = Array.from({ length: header.bones }, () => {
+    const bone = new THREE.Bone();
+    bone.matrixAutoUpdate = false;
+    return bone;
+  });
+  const mesh = new THREE.SkinnedMesh(geometry, material);
+  mesh.bindMode = THREE.DetachedBindMode;
+  mesh.bind(new THREE.Skeleton(bones), new THREE.Matrix4());
+  return mesh;
+}
+
+function setBones(mesh, buffer) {
+  const t = new Float32Array(buffer); // B x 12: rows of 3x4 transforms
+  const bones = mesh.skeleton.bones;
+  for (let b = 0; b < bones.length && 12 * b + 11 < t.length; b++) {
+    const o = 12 * b;
+    bones[b].matrixWorld.set(t[o], t[o + 1], t[o + 2], t[o + 3], t[o + 4], t[o + 5], t[o + 6], t[o + 7],
+      t[o + 8], t[o + 9], t[o + 10], t[o + 11], 0, 0, 0, 1);
+  }
+}
+
+function setMesh(header, faces, vertices, indices, weights) {
   const old = meshes.get(header.key);
   if (old) { world.remove(old.mesh); old.mesh.geometry.dispose(); old.mesh.material.dispose(); }
   const geometry = new THREE.BufferGeometry();
   const position = new THREE.BufferAttribute(new Float32Array(vertices), 3);
-  position.setUsage(THREE.DynamicDrawUsage);
+  if (!header.skin) position.setUsage(THREE.DynamicDrawUsage);
   geometry.setAttribute('position', position);
   geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(faces), 1));
-  geometry.computeVertexNormals();
+  geometry.computeVertexNormals(); // a skinned mesh's rest normals: the GPU skins them with the vertices
   const color = new THREE.Color().setRGB(...header.color, THREE.SRGBColorSpace);
   const material = new THREE.MeshLambertMaterial({ // matte cloth and skin, smooth-shaded by vertex normals
     color,
@@ -84,12 +121,14 @@ function setMesh(header, faces, vertices) {
     // the body a hair behind the cloth in depth: where skin and cloth meet at a hem the cloth wins
     polygonOffset: header.garment === 'body', polygonOffsetFactor: 1, polygonOffsetUnits: 1,
   });
-  const mesh = new THREE.Mesh(geometry, material);
+  const mesh = header.skin ? skinnedMesh(geometry, material, header, indices, weights)
+    : new THREE.Mesh(geometry, material);
   mesh.frustumCulled = false; // vertices move every frame: no stale bounding sphere
   mesh.name = header.key;
   world.add(mesh);
   meshes.set(header.key, { mesh, agent: header.agent, garment: header.garment, dirty: false });
-  stats.meshes[header.key] = { vertices: header.vertices, faces: header.faces, frames: 0, color: header.color };
+  stats.meshes[header.key] = { vertices: header.vertices, faces: header.faces, frames: 0, color: header.color,
+    skinned: Boolean(header.skin) };
   panel.addMesh(header);
 }
 
@@ -98,12 +137,21 @@ function setFrames(frames) {
   for (const m of frames) {
     const entry = meshes.get(m.key);
     if (!entry) continue;
+    if (m.bones) {
+      if (!entry.mesh.isSkinnedMesh) continue;
+      setBones(entry.mesh, m.bones);
+      stats.meshes[m.key].frames += 1;
+      stats.meshes[m.key].stamp = m.stamp;
+      continue;
+    }
+    if (entry.mesh.isSkinnedMesh) continue; // vertices of a mesh now skinned: its bones are on the way
     const position = entry.mesh.geometry.attributes.position;
     if (position.count * 12 !== m.vertices.byteLength) continue; // topology changed; its new mesh is on the way
     position.array.set(new Float32Array(m.vertices));
     position.needsUpdate = true;
     entry.dirty = true;
     stats.meshes[m.key].frames += 1;
+    stats.meshes[m.key].stamp = m.stamp;
   }
 }
 
@@ -113,7 +161,7 @@ function send(message) { worker.postMessage({ kind: 'send', message }); }
 worker.onmessage = (event) => {
   const data = event.data;
   if (data.kind === 'frames') setFrames(data.meshes);
-  else if (data.kind === 'mesh') setMesh(data.header, data.faces, data.vertices);
+  else if (data.kind === 'mesh') setMesh(data.header, data.faces, data.vertices, data.indices, data.weights);
   else if (data.kind === 'fps') panel.setMeshFps(data.fps);
   else if (data.kind === 'open') { stats.connected = true; panel.setConnection('live'); }
   else if (data.kind === 'closed') { stats.connected = false; panel.setConnection('reconnecting'); }
