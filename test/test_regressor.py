@@ -135,6 +135,17 @@ def test_training_refuses_test_clips_and_holds_out_whole_clips(database):
     assert sorted(sum(folds, [])) == ["a", "b", "c", "d", "e"] and len(folds) == 3
 
 
+def test_frames_that_lost_the_garment_are_left_out(database):
+    """max_offset leaves out exactly the frames with a vertex further than it from its skinned place."""
+    pack = load_sequence_pack(PACK)
+    largest = np.linalg.norm(pack["offsets"], axis=2).max(axis=1)
+    cut = float(np.percentile(largest, 90))
+    kept = pack_data(pack, database, max_offset=cut)
+    assert len(kept.poses) == int((largest <= cut).sum()) < len(largest)
+    assert np.abs(kept.positions - np.asarray(pack["rest"], np.float64)).max() <= cut + 1e-6
+    assert len(pack_data(pack, database).poses) == len(largest)
+
+
 def test_command_writes_the_group_once_and_no_learning_library_at_run_time(tmp_path, database):
     """Training into a database is idempotent; a frame with the stored regressor imports no sklearn/torch/jax."""
     path = write_database(tmp_path / "db.h5", database)

@@ -41,6 +41,9 @@ class RegressorSettings:
     # frames: static drapes, like the held-out ground truth, and few beside thousands of frames (0: not used)
     max_iter: int = 300
     seed: int = 0
+    max_offset: float = 0.5  # metres: frames in which a vertex strays further than this from its skinned place (in
+    # the rest frame) are left out - a simulation that lost the garment (trousers off the hips in the dance clips),
+    # not a drape to learn
 
 
 @dataclass
@@ -83,16 +86,20 @@ def example_data(db) -> TrainingData:
     return TrainingData(poses, positions, np.array(["examples"] * len(poses)))
 
 
-def pack_data(pack: dict, db) -> TrainingData:
-    """The frames of a loaded sequence pack (load_sequence_pack); refuses test clips and another garment."""
+def pack_data(pack: dict, db, max_offset: float | None = None) -> TrainingData:
+    """The frames of a loaded sequence pack (load_sequence_pack); refuses test clips and another garment. With
+    max_offset (m), frames whose largest rest-frame offset exceeds it are left out (see RegressorSettings)."""
     from ..engine.pose_models import canonical_poses
 
     names = [str(n) for n in pack["clips"]]
     check_training_clips(names)
     if pack["rest"].shape != db.rest.shape or np.abs(pack["rest"] - db.rest).max() > 1e-5:
         raise ValueError(f"the pack's rest garment ({str(pack['garment'])}) is not the database's ({db.garment})")
-    positions = np.asarray(pack["offsets"], dtype=np.float64) + np.asarray(pack["rest"], dtype=np.float64)
-    return TrainingData(canonical_poses(pack["rotvecs"]), positions, np.array(names)[pack["clip"]])
+    offsets = np.asarray(pack["offsets"])
+    keep = np.arange(len(offsets)) if max_offset is None else np.flatnonzero(
+        np.linalg.norm(offsets, axis=2).max(axis=1) <= max_offset)
+    positions = offsets[keep].astype(np.float64) + np.asarray(pack["rest"], dtype=np.float64)
+    return TrainingData(canonical_poses(pack["rotvecs"][keep]), positions, np.array(names)[pack["clip"][keep]])
 
 
 def join(*parts: TrainingData) -> TrainingData:
@@ -230,7 +237,9 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
         return {"database": str(db_path), "skipped": "a regressor trained from the same data and settings is "
                 "stored already", **db.regressor.info}
     bar = tqdm(total=folds + 2, desc="regressor", unit="fit", disable=not progress)
-    frames = pack_data(load_sequence_pack(pack_path), db)
+    pack = load_sequence_pack(pack_path)
+    frames = pack_data(pack, db, settings.max_offset)
+    dropped = len(pack["offsets"]) - len(frames.poses)
     extra = join(*[example_data(db)] * settings.examples) if settings.examples else None
     bar.update()
     dofs = pose_dofs(db, settings.features)
@@ -241,7 +250,8 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
     bar.close()
     train_error = vertex_error(predict(regressor, frames.poses), frames.positions)
     info = {**regressor.info, "key": key, "pack": str(pack_path), "clips": sorted(set(frames.groups.tolist())),
-            "pack_frames": int(len(frames.poses)), "example_drapes": int(len(db.example_poses)) if extra is not None else 0,
+            "pack_frames": int(len(frames.poses)), "frames_left_out": int(dropped),
+            "example_drapes": int(len(db.example_poses)) if extra is not None else 0,
             "training_error_m": train_error, **report}
     regressor = replace(regressor, info=info)
     before = Path(db_path).stat().st_size
@@ -266,13 +276,15 @@ def main(argv=None) -> int:
                         "drapes among the training frames (0: the pack's frames only)")
     parser.add_argument("--max-iter", type=int, default=defaults.max_iter)
     parser.add_argument("--seed", type=int, default=defaults.seed)
+    parser.add_argument("--max-offset", type=float, default=defaults.max_offset, help="leave out frames whose garment "
+                        "strays further than this (m) from its skinned place: a simulation that lost it")
     parser.add_argument("--folds", type=int, default=3, help="validation folds of whole clips")
     parser.add_argument("--force", action="store_true", help="retrain even if the stored regressor is up to date")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     settings = RegressorSettings(components=args.components, hidden=tuple(args.hidden), activation=args.activation,
                                  alpha=args.alpha, features=args.features, examples=args.examples,
-                                 max_iter=args.max_iter, seed=args.seed)
+                                 max_iter=args.max_iter, seed=args.seed, max_offset=args.max_offset)
     report = train_database_regressor(args.database, args.pack, settings, folds=args.folds, force=args.force,
                                       progress=not args.quiet)
     json.dump(report, sys.stdout, indent=1)
