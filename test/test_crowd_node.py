@@ -130,7 +130,7 @@ class Client:
 def crowd(tmp_path_factory):
     params = {"agents": ["alice", "bob"], "garments": ["tshirt"], "garment_databases": [f"tshirt:{TSHIRT}"],
               "engine": ENGINE, "status_rate_hz": 4.0, "agent.bob.shape": BOB_SHAPE,
-              "agent.bob.frame_id": "bob_frame", "agent.bob.origin": [3.0, 0.0, 0.0]}
+              "agent.bob.frame_id": "bob_frame", "agent.bob.origin": [3.0, 0.0, 0.0], "realtime_priority": 5}
     child, domain = _start(tmp_path_factory, "crowd", params)
     with ros_node("agentdress_crowd_test", domain) as (node, executor):
         client = Client(node, executor, ["alice", "bob", "carol"])
@@ -160,6 +160,33 @@ def test_two_agents_get_their_own_correct_clouds(crowd, body):
     assert np.abs(bob - expected_bob).max() < 1e-4
     assert np.abs(alice - bob).max() > 0.05
     assert alice_cloud.header.frame_id == "agent" and bob_cloud.header.frame_id == "bob_frame"
+
+
+def test_the_agents_inputs_have_a_participant_of_their_own_below_the_nodes_receive_threads(crowd):
+    """The crowd's polled poses arrive on a second DDS participant; with realtime_priority (where the machine allows
+    it) the executor thread is SCHED_FIFO 5 and the node's own participant's DDS threads - which receive only the
+    poses answered on arrival and other low-rate input - SCHED_FIFO 6, while the inputs' DDS threads keep the normal
+    scheduler (thousands of poses a second must not preempt the ticks)."""
+    import os
+
+    _, child = crowd
+    threads = {}
+    for tid in os.listdir(f"/proc/{child.pid}/task"):
+        with open(f"/proc/{child.pid}/task/{tid}/comm") as comm:
+            threads[int(tid)] = comm.read().strip()
+    dds = {t: n for t, n in threads.items() if n.startswith("dds.")}
+    policies = {t: os.sched_getscheduler(t) for t in threads}
+    if "realtime_priority 5: not allowed" in child.output():
+        assert all(p == os.SCHED_OTHER for p in policies.values())
+        return
+    assert child.wait_for_output("SCHED_FIFO priority 6", timeout=10.0), child.output()
+    assert policies[child.pid] == os.SCHED_FIFO and os.sched_getparam(child.pid).sched_priority == 5
+    raised = [t for t in dds if policies[t] == os.SCHED_FIFO]
+    normal = [t for t in dds if policies[t] == os.SCHED_OTHER]
+    assert raised and normal and len(raised) + len(normal) == len(dds), (dds, policies)
+    assert all(os.sched_getparam(t).sched_priority == 6 for t in raised)
+    assert all(policies[t] == os.SCHED_OTHER for t in threads if t != child.pid and t not in dds)
+    assert f"{len(raised)} DDS receive threads of the node's own participant" in child.output()
 
 
 def test_markers_for_rviz_per_agent(crowd):

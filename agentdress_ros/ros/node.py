@@ -641,6 +641,21 @@ def set_realtime_priority(priority: int, logger) -> bool:
     return True
 
 
+def raise_receive_threads(thread_ids, priority: int, logger) -> int:
+    """SCHED_FIFO at `priority` (above the executor's) for the crowd node's own DDS threads: they receive only the
+    poses answered on arrival and other low-rate input, and hand them over without waiting for the end of a tick.
+    Returns how many threads took it."""
+    raised = 0
+    for tid in thread_ids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            raised += 1
+        except (PermissionError, OSError):
+            continue  # ended meanwhile, or refused like the executor's would have been
+    logger.info(f"{raised} DDS receive threads of the node's own participant at SCHED_FIFO priority {priority}")
+    return raised
+
+
 def main(args=None) -> int:
     """Console script `agentdress_node [--ros-args ...]`. Exit status 0 on Ctrl-C / SIGTERM, 2 when the
     configuration cannot start (the reason, naming the parameter or database file, goes to stderr)."""
@@ -658,7 +673,9 @@ def main(args=None) -> int:
             return 2
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        set_realtime_priority(node.config["realtime_priority"], node.get_logger())
+        if set_realtime_priority(node.config["realtime_priority"], node.get_logger()) and node.crowd is not None:
+            raise_receive_threads(node.crowd.receive_threads(), node.config["realtime_priority"] + 1,
+                                  node.get_logger())
         spin_until_shutdown(executor.spin)
         return 0
     finally:

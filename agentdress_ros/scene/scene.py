@@ -212,6 +212,7 @@ class Scene:
         self.viewer: Viewer | None = None
         self.ticks = 0
         self.after_ms = 0.0  # smoothed caller's work after each tick (note_after_ms), reserved from the budget
+        self.between_ms = 0.0  # smoothed work of the between_agents hook per tick (arrivals answered), reserved too
         self.level_cost: dict[int, float] = {}
         self.stats = TierStats([t.name for t in config.lod.tiers])
         self.on_error = on_error or (lambda message: None)
@@ -390,10 +391,13 @@ class Scene:
         decisions.sort(key=lambda d: by_key[d.key].distance)
         tier_ms = Counter()
         between = time.perf_counter()
+        hook_ms = 0.0
         for decision in decisions:
             if self.between_agents is not None and time.perf_counter() - between >= INTERLEAVE_MS * 1e-3:
+                t0 = time.perf_counter()
                 self.between_agents()
                 between = time.perf_counter()
+                hook_ms += 1e3 * (between - t0)
             agent = by_key[decision.key]
             if agent.last_dressed >= clock:  # answered through between_agents during this tick: nothing left
                 continue
@@ -410,18 +414,21 @@ class Scene:
         for name in self.stats.names:
             if tier_ms[name] or self.stats.agents[name]:
                 self.stats.ms[name].append(round(tier_ms[name], 4))
+        a = self.config.cost_smoothing
+        self.between_ms = (1 - a) * self.between_ms + a * hook_ms
         self.ticks += 1
         report.ms = 1e3 * (time.perf_counter() - start)
         return report
 
     def _dressing_budget(self, started: float) -> float:
-        """ms left for dressing this tick: budget_ms less the tick's fixed costs (spent so far, expected after);
-        never 0 (which the scheduler reads as no budget) while a budget is set."""
+        """ms left for dressing this tick: budget_ms less the tick's fixed costs (spent so far, expected after) and
+        the arrivals the between_agents hook is expected to answer; never 0 (which the scheduler reads as no budget)
+        while a budget is set."""
         budget = self.config.budget_ms
         if budget <= 0:
             return budget
         spent = 1e3 * (time.perf_counter() - started)
-        return max(MIN_DRESSING_MS, budget - spent - self.after_ms)
+        return max(MIN_DRESSING_MS, budget - spent - self.after_ms - self.between_ms)
 
     def note_after_ms(self, ms: float):
         """The caller's work after `tick` returned (publishing bookkeeping, subscriptions): smoothed into what the
