@@ -1,6 +1,8 @@
 """The KDSM (a skinned tet mesh of the air around the body): lattice, build, embedding, inverse embedding, run-time
 kernel. Checked against analytic truth where there is one (BCC volumes, identity and rigid poses, barycentric round
 trips) and against the shipped T-shirt sequence pack for the inverse embedding. A coarse lattice keeps it quick."""
+import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -9,12 +11,15 @@ from scipy.spatial import cKDTree
 
 from agentdress_ros.body.kinematics import forward_kinematics, linear_blend_skinning
 from agentdress_ros.build.sequences import load_sequence_pack
-from agentdress_ros.engine.database import read_database
+from agentdress_ros.build.regressor import RegressorSettings, pose_dofs, predict
+from agentdress_ros.engine import Engine, EngineConfig
+from agentdress_ros.engine.database import KDSM_ARRAYS, DatabaseError, KdsmModel, read_database
 from agentdress_ros.garment.binding import vertex_normals
 from agentdress_ros.kdsm.embedding import KdsmPoser, embed, pose_displaced, unembed
 from agentdress_ros.kdsm.inverse import candidate_parents, graph_laplacian, harmonic_fill, mesh_edges, prune_candidates
 from agentdress_ros.kdsm.lattice import lattice_tet_nodes, locate_lattice_tets, node_positions, signed_volumes
 from agentdress_ros.kdsm.mesh import KDSMSettings, build_kdsm, load_kdsm, save_kdsm
+from agentdress_ros.kdsm.model import (compare, fit_displacements, kdsm_targets, posed_kdsm, store_kdsm_model)
 from agentdress_ros.kdsm.training import pack_frames, reconstruction_table, spread_frames, training_targets
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -291,3 +296,103 @@ def test_training_targets_are_the_hybrid_displacements_and_reproduce_the_drapes(
     for n in range(len(frames.drapes)):
         error = np.linalg.norm(poser.pose(frames.transforms[n], displacements[n]) - frames.drapes[n], axis=1)
         assert np.mean(error <= 5e-4) >= 0.99
+
+
+# ---------------------------------------------------------------- the learned d(theta): the `kdsm` pose model
+TINY = RegressorSettings(components=3, hidden=(32,), alpha=1e-8, examples=0, max_iter=3000)
+
+
+@pytest.fixture(scope="module")
+def targets(kdsm, body, shape, database):
+    """The four pack frames of `frames`, inverse-embedded (no database drapes)."""
+    return kdsm_targets(kdsm, database, body, shape, load_sequence_pack(PACK), 4, examples=False)
+
+
+@pytest.fixture(scope="module")
+def tiny_model(kdsm, database, targets):
+    """A kdsm pose model fitted to the four frames (3 PCA components hold four frames exactly)."""
+    dofs = pose_dofs(database, "sensitive")
+    regressor = fit_displacements(targets, np.arange(len(targets.poses)), dofs, TINY)
+    return KdsmModel(kdsm=kdsm, rest=database.rest, regressor=regressor, info={"frames": len(targets.poses)})
+
+
+def test_kdsm_targets_are_the_frames_inverse_embedded(targets, frames):
+    assert len(targets.poses) == 4 and len(np.unique(targets.groups)) == 4  # four clips
+    np.testing.assert_array_equal(targets.frames, frames.frames)
+    np.testing.assert_allclose(targets.drapes, frames.drapes)
+    np.testing.assert_allclose(targets.unposed, frames.unposed)
+
+
+def test_the_kdsm_pose_model_at_the_identity_with_zero_d_is_the_rest_garment(kdsm, body, database, tiny_model):
+    zero = replace(tiny_model, regressor=replace(
+        tiny_model.regressor, weights=tuple(np.zeros_like(w) for w in tiny_model.regressor.weights),
+        biases=tuple(np.zeros_like(b) for b in tiny_model.regressor.biases),
+        mean=np.zeros_like(tiny_model.regressor.mean)))
+    engine = Engine(replace(database, kdsm_model=zero), body, EngineConfig(pose_model="kdsm", shape_model=False))
+    assert engine.pose_model.skinned is False
+    rotvecs = np.zeros((body.n_bones, 3))
+    np.testing.assert_allclose(engine.pose_model_output(rotvecs), database.rest, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(engine.synthesize(rotvecs, np.zeros(3)), database.rest, atol=1e-6, rtol=0)
+    # a root translation moves it rigidly
+    np.testing.assert_allclose(engine.pose_model_output(rotvecs, np.array([0.5, -0.2, 1.0])),
+                               database.rest + [0.5, -0.2, 1.0], atol=1e-5, rtol=0)
+    assert engine.pose_model.fallback_count == 0
+
+
+def test_the_learned_model_reproduces_its_training_drapes_through_the_engine(kdsm, body, shape, database, targets,
+                                                                            tiny_model):
+    d = predict(tiny_model.regressor, targets.poses)
+    np.testing.assert_allclose(d, targets.displacements, atol=2e-3, rtol=0)  # the MLP fits its four frames
+    rest = np.asarray(database.rest, dtype=np.float64)
+    posed, outside = posed_kdsm(kdsm, rest, database.skin_indices, database.skin_weights, targets.transforms, d)
+    error = np.linalg.norm(posed - targets.drapes, axis=2)
+    assert error.mean() < 2e-3 and outside == 0  # the drapes again, to millimetres
+    # the engine's pose model (reordered vertices, float32 buffers) gives the same positions, also off the root
+    engine = Engine(replace(database, kdsm_model=tiny_model), body, EngineConfig(pose_model="kdsm",
+                                                                                 shape_model=False))
+    root = np.array([0.3, 0.1, -0.4])
+    for n in range(len(targets.poses)):
+        np.testing.assert_allclose(engine.pose_model_output(targets.poses[n]), posed[n], atol=2e-5, rtol=0)
+        np.testing.assert_allclose(engine.pose_model_output(targets.poses[n], root), posed[n] + root, atol=2e-5,
+                                   rtol=0)
+    # and a database without the group refuses the model by name
+    with pytest.raises(ValueError, match="pose_model/kdsm"):
+        Engine(database, body, EngineConfig(pose_model="kdsm", shape_model=False))
+
+
+def test_the_stored_kdsm_group_round_trips(kdsm, database, tiny_model, tmp_path):
+    assert database.kdsm_model is None  # the shipped database has no KDSM group and reads as before
+    path = store_kdsm_model(DATABASE, tmp_path / "with_kdsm.h5", tiny_model)
+    loaded = read_database(path).kdsm_model
+    for name in KDSM_ARRAYS:
+        np.testing.assert_array_equal(getattr(loaded.kdsm, name), getattr(kdsm, name))
+    assert loaded.kdsm.spacing == kdsm.spacing and loaded.kdsm.settings == kdsm.settings
+    assert loaded.kdsm.info == json.loads(json.dumps(kdsm.info)) and loaded.info == tiny_model.info
+    np.testing.assert_array_equal(loaded.rest, database.rest)
+    reg, stored = loaded.regressor, tiny_model.regressor
+    for got, want in zip(reg.weights + reg.biases, stored.weights + stored.biases):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(reg.basis, stored.basis)
+    np.testing.assert_array_equal(reg.dofs, stored.dofs)
+    # the rest of the database is untouched (the shipped regressor among it)
+    again = read_database(path)
+    np.testing.assert_array_equal(again.rest, database.rest)
+    np.testing.assert_array_equal(again.regressor.mean, database.regressor.mean)
+    # a broken group is refused naming the field
+    import h5py
+
+    with h5py.File(path, "r+") as h5:
+        h5["pose_model/kdsm/tets"][0, 0] = len(kdsm.vertices)
+    with pytest.raises(DatabaseError, match="pose_model/kdsm/tets"):
+        read_database(path)
+
+
+@pytest.mark.filterwarnings("ignore:A column-vector y was passed")  # two training frames: one component
+def test_the_comparison_scores_both_models_on_held_out_clips(kdsm, database, targets):
+    report = compare(kdsm, database, targets, pose_dofs(database, "sensitive"), TINY, folds=2)
+    errors = report["error_cm"]
+    assert report["frames"] == 4 and sum(f["frames"] for f in report["folds"]) == 4
+    assert all(not set(a["clips"]) & set(b["clips"]) for a, b in zip(report["folds"], report["folds"][1:]))
+    assert errors["kdsm_targets"] < 0.1  # the targets themselves reproduce the drapes (inverse embedding)
+    assert errors["rest_skinned"] > 1.0 and errors["fixed_embedding"] > 1.0  # no pose dependence: centimetres
+    assert all(np.isfinite(v) and v >= 0 for v in errors.values())

@@ -211,19 +211,24 @@ def training_key(pack_path, db, settings: RegressorSettings) -> str:
     return digest.hexdigest()[:16]
 
 
-def store_regressor(path, regressor: Regressor) -> Path:
-    """Write `regressor` into the database file at `path` (other groups untouched), atomically: a copy is changed,
-    read back through the validating reader, then renamed over the original."""
+def store_in_database(path, write, source=None) -> Path:
+    """Add a group to a database atomically: a copy of `source` (default: `path` itself) is changed by write(h5),
+    read back through the validating reader, then renamed to `path` (other groups untouched)."""
     import h5py
 
     path = Path(path)
     partial = path.with_name(path.name + ".partial")
-    shutil.copyfile(path, partial)
+    shutil.copyfile(source if source is not None else path, partial)
     with h5py.File(partial, "r+") as h5:
-        write_regressor(h5, regressor)
+        write(h5)
     read_database(partial)
     partial.replace(path)
     return path
+
+
+def store_regressor(path, regressor: Regressor) -> Path:
+    """Write `regressor` into the database file at `path` (store_in_database)."""
+    return store_in_database(path, lambda h5: write_regressor(h5, regressor))
 
 
 def train_database_regressor(db_path, pack_path, settings: RegressorSettings, folds: int = 3, force: bool = False,

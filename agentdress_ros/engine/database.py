@@ -37,9 +37,19 @@ at run time. A held-out shape that changes four phenotypes at once is reproduced
 | pose_model/regressor/layer_NN/weights, .../layer_NN/bias | (H_n, H_n+1) f32, (H_n+1,) f32 | the MLP's layers, NN = 00, 01, ... (H_0 = I, the last = G); attrs activation, layers, info (JSON) |
 | pose_model/regressor/coefficient_mean, .../coefficient_scale, .../mean, .../basis | (G,), (G,) f32, (V, 3), (G, V, 3) f32 | PCA of the rest-frame garment: position = mean + sum_g (y_g scale_g + mean_g) basis_g for the MLP output y |
 
+| pose_model/kdsm/origin, .../dims, .../vertices, .../tets, .../class_inverse, .../lattice_tets | (3,) f64, (3,) int64, (Nk, 3) f64, (Tk, 4) int32, (12, 3, 3) f64, (Lk,) int32 | optional KDSM (kdsm.mesh.KDSM, below); attrs spacing, settings (JSON), info (JSON) |
+| pose_model/kdsm/skin_indices, .../skin_weights, .../body_distance | (Nk, 4) int32, (Nk, 4) f64, (Nk,) f64 | the tet vertices' skinning and rest distance to the body |
+| pose_model/kdsm/rest | (V, 3) f32 | u^{m_o}: the rest garment the displacements are learned for (in this file's vertex order) |
+| pose_model/kdsm/regressor/... | as pose_model/regressor | the learned d(theta): PCA of the plastic displacements d, MLP from the pose |
+
 The regressor (Santesteban et al. 2019, Sec. 3-4) is f(beta0, theta) in the rest frame: the garment unposed with
 beta0's bones (their Eq. 5), reduced by PCA, regressed from the pose by an MLP (hidden layers `activation`, the last
 linear). Trained offline (`agentdress regressor`, build.regressor); evaluated with numpy (engine.pose_models).
+
+The KDSM group (KDSM paper, Sec. 3-6) is the `kdsm` pose model: a skinned tet mesh of the air around the body at
+beta0 and an MLP of the same kind learning the plastic displacements d(theta) of the garment in it; at run time
+rest + d is re-embedded in the lattice and the parent tet skinned (world positions). Trained offline
+(`python -m agentdress_ros.kdsm.model`).
 """
 from __future__ import annotations
 
@@ -75,6 +85,11 @@ REGRESSOR_ACTIVATIONS = ("tanh", "relu")
 MAX_LAYERS = 16
 
 
+KDSM_GROUP = "pose_model/kdsm"
+KDSM_ARRAYS = ("origin", "dims", "vertices", "tets", "class_inverse", "lattice_tets", "skin_indices", "skin_weights",
+               "body_distance")
+
+
 @dataclass(frozen=True)
 class Regressor:
     """The learned pose model's arrays (group pose_model/regressor; shapes in the module docstring)."""
@@ -96,11 +111,11 @@ class Regressor:
         return replace(self, mean=self.mean[ids], basis=self.basis[:, ids])
 
 
-def write_regressor(h5, regressor: Regressor) -> None:
-    """Write (or replace) the regressor group in an open, writable HDF5 file."""
-    if REGRESSOR_GROUP in h5:
-        del h5[REGRESSOR_GROUP]
-    group = h5.require_group(REGRESSOR_GROUP)
+def write_regressor(h5, regressor: Regressor, name: str = REGRESSOR_GROUP) -> None:
+    """Write (or replace) the regressor group `name` in an open, writable HDF5 file."""
+    if name in h5:
+        del h5[name]
+    group = h5.require_group(name)
     arrays = {"dofs": (regressor.dofs, np.int32), "input_mean": (regressor.input_mean, np.float32),
               "input_scale": (regressor.input_scale, np.float32),
               "coefficient_mean": (regressor.coefficient_mean, np.float32),
@@ -114,6 +129,43 @@ def write_regressor(h5, regressor: Regressor) -> None:
     group.attrs["activation"] = regressor.activation
     group.attrs["layers"] = len(regressor.weights)
     group.attrs["info"] = json.dumps(regressor.info)
+
+
+@dataclass(frozen=True)
+class KdsmModel:
+    """The `kdsm` pose model's arrays (group pose_model/kdsm): the KDSM (kdsm.mesh.KDSM), the rest garment its
+    displacements belong to, and the regressor of d(theta) (rest-frame displacements instead of positions)."""
+
+    kdsm: object  # kdsm.mesh.KDSM
+    rest: np.ndarray  # (V, 3) f32
+    regressor: Regressor
+    info: dict = field(default_factory=dict)
+
+    def vertex_rows(self, ids) -> "KdsmModel":
+        """The model restricted to (or reordered by) garment vertex indices `ids`."""
+        return replace(self, rest=self.rest[ids], regressor=self.regressor.vertex_rows(ids))
+
+
+def write_kdsm_model(h5, model: KdsmModel) -> None:
+    """Write (or replace) the KDSM group in an open, writable HDF5 file."""
+    if KDSM_GROUP in h5:
+        del h5[KDSM_GROUP]
+    group = h5.require_group(KDSM_GROUP)
+    kdsm = model.kdsm
+    for name in KDSM_ARRAYS:
+        _create(group, name, np.ascontiguousarray(getattr(kdsm, name)))
+    _create(group, "rest", np.ascontiguousarray(model.rest, dtype=np.float32))
+    group.attrs["spacing"] = float(kdsm.spacing)
+    group.attrs["settings"] = json.dumps(_settings_dict(kdsm.settings))
+    group.attrs["kdsm_info"] = json.dumps(kdsm.info)
+    group.attrs["info"] = json.dumps(model.info)
+    write_regressor(h5, model.regressor, KDSM_GROUP + "/regressor")
+
+
+def _settings_dict(settings) -> dict:
+    from dataclasses import asdict
+
+    return asdict(settings)
 
 
 def _create(parent, name: str, array: np.ndarray) -> None:
@@ -155,6 +207,7 @@ class Database:
     sequence_drapes: np.ndarray | None = None
     sequence_fps: float = 30.0
     regressor: "Regressor | None" = None
+    kdsm_model: "KdsmModel | None" = None
     shape_basis: str = "absolute"
     binding_triangles: np.ndarray | None = None
     binding_barycentric: np.ndarray | None = None
@@ -248,6 +301,8 @@ def write_database(path, db: Database) -> Path:
             h5["garment/binding"].attrs["surface"] = db.binding_surface
         if db.regressor is not None:
             write_regressor(h5, db.regressor)
+        if db.kdsm_model is not None:
+            write_kdsm_model(h5, db.kdsm_model)
     partial.replace(path)
     return path
 
@@ -448,24 +503,78 @@ class _Reader:
                                         "basis)")
             extras["binding_surface"] = self.text("garment/binding", "surface", allow_empty=False)
         extras["regressor"] = self.regressor()
+        extras["kdsm_model"] = self.kdsm_model()
         return Database(**values, **extras)
 
-    def regressor(self) -> Regressor | None:
-        """The optional learned pose model's group, checked like every other field (None when absent)."""
-        self.where = f"group '{REGRESSOR_GROUP}'"
-        group = self.h5.get(REGRESSOR_GROUP)
+    def kdsm_model(self) -> KdsmModel | None:
+        """The optional KDSM group (None when absent): the mesh's arrays checked for shapes, index ranges and
+        weights, its rest garment against V, its regressor like pose_model/regressor."""
+        from ..kdsm.mesh import KDSM, KDSMSettings
+
+        self.where = f"group '{KDSM_GROUP}'"
+        group = self.h5.get(KDSM_GROUP)
         if group is None:
             return None
         if not isinstance(group, h5py.Group):
             self.fail("is a dataset, not a group")
-        layers = self.attribute(REGRESSOR_GROUP, "layers")
+        spacing = self.attribute(KDSM_GROUP, "spacing")
+        if not (np.ndim(spacing) == 0 and np.asarray(spacing).dtype.kind == "f" and 1e-4 <= spacing <= 1.0):
+            self.fail(f"is {_shown(spacing)!r}, expected a lattice step in [1e-4, 1] m")
+        settings = self.json(KDSM_GROUP, "settings", "{}", dict)
+        kdsm_info = self.json(KDSM_GROUP, "kdsm_info", "{}", dict)
+        info = self.json(KDSM_GROUP, "info", "{}", dict)
+        g = KDSM_GROUP + "/"
+        fields = [("origin", np.float64, (3,), POINTS), ("dims", np.int64, (3,), (1, 100_000)),
+                  ("vertices", np.float64, ("Nk", 3), POINTS), ("tets", np.int32, ("Tk", 4), (0, "Nk")),
+                  ("class_inverse", np.float64, (12, 3, 3), (None, None)),
+                  ("lattice_tets", np.int32, ("Lk",), (-1, "Tk")),
+                  ("skin_indices", np.int32, ("Nk", N_INFLUENCES), (0, "B")),
+                  ("skin_weights", np.float64, ("Nk", N_INFLUENCES), (0.0, 1.0)),
+                  ("body_distance", np.float64, ("Nk",), (-1.0e3, 1.0e3)), ("rest", np.float32, ("V", 3), POINTS)]
+        values = {}
+        for name, dtype, spec, bounds in fields:
+            array = self.numeric(g + name, dtype, spec)
+            if name != "class_inverse":  # NaN-free is all: classes not meshed are never read
+                self.check_range(g + name, array, bounds, dtype)
+            values[name] = self.cast(array, dtype)
+        self.where = f"field '{g}lattice_tets'"
+        if int(np.prod(values["dims"])) * 12 != len(values["lattice_tets"]):
+            self.fail(f"has {len(values['lattice_tets'])} entries, expected 12 per cube of dims "
+                      f"{values['dims'].tolist()}")
+        self.where = f"field '{g}skin_weights'"
+        if np.abs(values["skin_weights"].sum(axis=1) - 1.0).max() > 1e-4:
+            self.fail("has rows that do not sum to 1")
+        for name in ("Nk", "Tk", "Lk"):
+            self.sizes.pop(name, None)
+        regressor = self.regressor(KDSM_GROUP + "/regressor", required=True)
+        rest = values.pop("rest")
+        try:
+            kdsm_settings = KDSMSettings(**settings)
+        except TypeError as error:
+            self.where = f"attribute '{KDSM_GROUP}/settings'"
+            self.fail(f"does not hold KDSM settings ({error})")
+        kdsm = KDSM(spacing=float(spacing), settings=kdsm_settings, info=kdsm_info, **values)
+        return KdsmModel(kdsm=kdsm, rest=rest, regressor=regressor, info=info)
+
+    def regressor(self, group_name: str = REGRESSOR_GROUP, required: bool = False) -> Regressor | None:
+        """The optional learned pose model's group (`group_name`: pose_model/regressor, or the KDSM's), checked like
+        every other field (None when absent)."""
+        self.where = f"group '{group_name}'"
+        group = self.h5.get(group_name)
+        if group is None and required:
+            raise DatabaseError(f"{self.path}: required group '{group_name}' is missing")
+        if group is None:
+            return None
+        if not isinstance(group, h5py.Group):
+            self.fail("is a dataset, not a group")
+        layers = self.attribute(group_name, "layers")
         if not (np.ndim(layers) == 0 and np.asarray(layers).dtype.kind in "iu" and 1 <= layers <= MAX_LAYERS):
             self.fail(f"is {_shown(layers)!r}, expected a layer count in [1, {MAX_LAYERS}]")
-        activation = self.text(REGRESSOR_GROUP, "activation", allow_empty=False)
+        activation = self.text(group_name, "activation", allow_empty=False)
         if activation not in REGRESSOR_ACTIVATIONS:
             self.fail(f"is {activation!r}, expected one of {REGRESSOR_ACTIVATIONS}")
-        info = self.json(REGRESSOR_GROUP, "info", "{}", dict)
-        g = REGRESSOR_GROUP + "/"
+        info = self.json(group_name, "info", "{}", dict)
+        g = group_name + "/"
         sizes = ["I"] + [f"H{n + 1}" for n in range(int(layers) - 1)] + ["G"]  # widths: input, hidden..., output
         fields = [("dofs", np.int32, ("I",), (0, "D")), ("input_mean", np.float32, ("I",), (-1.0e3, 1.0e3)),
                   ("input_scale", np.float32, ("I",), (1.0e-9, 1.0e3))]

@@ -262,7 +262,72 @@ class RegressorPoseModel:
         return self.out
 
 
+class KdsmPoseModel:
+    """The learned pose model of the database's pose_model/kdsm group (KDSM paper, Sec. 3-6, at beta0): an MLP of the
+    regressor's kind predicts the garment's plastic displacements d(theta) in the KDSM (PCA coefficients, rest
+    frame); rest + d is re-embedded in the KDSM's rest lattice (O(1) a vertex) and each vertex moves with its parent
+    tet's four skinned vertices (kdsm.embedding.pose_displaced); vertices that leave the shell are skinned with the
+    garment's own weights. Returns posed world positions at beta0 (`skinned = False`).
+
+    The group's rest garment is matched to the context's vertex order (the engine reorders and slices vertices).
+    """
+
+    name = "kdsm"
+    skinned = False
+
+    def __init__(self, context: PoseModelContext):
+        from dataclasses import replace
+
+        from scipy.spatial import cKDTree
+
+        from ..kdsm.embedding import KdsmPoser
+
+        db = context.db
+        model = db.kdsm_model
+        if model is None:
+            raise ValueError("pose model 'kdsm' needs a database with pose_model/kdsm (train one with "
+                             "`python -m agentdress_ros.kdsm.model`)")
+        distance, ids = cKDTree(np.asarray(model.rest, dtype=np.float64)).query(np.asarray(db.rest, dtype=np.float64))
+        if len(ids) and distance.max() > 1e-6:
+            raise ValueError("pose model 'kdsm': the database's garment is not the one its KDSM group was trained "
+                             f"for (a rest vertex {distance.max():.3g} m from the group's)")
+        model = model.vertex_rows(ids)
+        self.displacements = RegressorPoseModel(replace(context, db=replace(db, regressor=model.regressor),
+                                                        dtype=np.float64))
+        self.poser = KdsmPoser(model.kdsm, model.rest, db.skin_indices, db.skin_weights)
+        self.heads = np.ascontiguousarray(context.reference_heads, dtype=np.float64)
+        self.parents = np.asarray(context.parents, dtype=np.int64)
+        self.dtype = context.dtype
+        self._allocate()
+
+    def _allocate(self):
+        self.transforms = np.empty((len(self.parents), 3, 4))
+        self.out = np.empty((3, len(self.poser.rest)), dtype=self.dtype)
+
+    def fork(self, context: PoseModelContext) -> "KdsmPoseModel":
+        from ..kdsm.embedding import KdsmPoser
+
+        twin = copy.copy(self)
+        twin.displacements = self.displacements.fork(context)
+        old = self.poser
+        twin.poser = KdsmPoser(old.kdsm, old.rest, old.skin_indices, old.skin_weights)
+        twin._allocate()
+        return twin
+
+    @property
+    def fallback_count(self) -> int:
+        """Vertices skinned outside the shell in the last frame."""
+        return self.poser.fallback_count
+
+    def evaluate(self, theta, root, frame):
+        d = self.displacements.evaluate(theta, root, frame)  # (3, V) rest-frame d
+        forward_kinematics(theta, np.asarray(root, dtype=np.float64), self.heads, self.parents, self.transforms)
+        self.out[:] = self.poser.pose(self.transforms, d.T).T
+        return self.out
+
+
 register_pose_model("lbs")(LbsPoseModel)
 register_pose_model("examples")(ExamplePoseModel)
 register_pose_model("sequence")(SequencePoseModel)
 register_pose_model("regressor")(RegressorPoseModel)
+register_pose_model("kdsm")(KdsmPoseModel)

@@ -7,6 +7,8 @@ parameterization.txt), ROS-free.
   u^{m_o} + d(theta) and skins the four parent tet vertices (Sec. 4).
 - `inverse`: inverse embedding of ground-truth drapes, Methods 1, 2 and the hybrid (Sec. 5).
 - `training`: training targets d(theta) from a sequence pack and the Table 1 analysis (offline).
+- `model`: the learned d(theta) (the `kdsm` pose model's training, stored as the database group pose_model/kdsm)
+  and the comparison with rest-frame offsets learned the same way (offline).
 """
 from .embedding import Embedding, KdsmPoser, embed, unembed
 from .mesh import KDSM, KDSMSettings, build_kdsm, load_kdsm, save_kdsm

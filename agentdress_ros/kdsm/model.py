@@ -1,0 +1,412 @@
+"""The `kdsm` pose model's training: a learned d(theta) in the KDSM (paper Sec. 6), offline, with scikit-learn.
+
+    python -m agentdress_ros.kdsm.model --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz \
+        --frames 2000 --targets out/tshirt_kdsm_targets.npz --out out/tshirt_kdsm.h5 [--compare]
+
+The KDSM is built at beta0 (2.5 cm lattice, a shell as thick as the farthest drape of the pack from the posed body
+plus a margin); `frames` pack frames spread over the training clips (and, as for the `regressor`, the database's
+beta0 drapes) are inverse-embedded (training.training_targets, about 0.2 s a frame) into plastic displacements d;
+the Seed 2 regressor's machinery (build.regressor.fit: PCA of d, an MLP from the same pose dofs to the PCA
+coefficients, the same settings) learns d(theta). The KDSM and the learned model are written into a copy of the
+database (`--out`, group pose_model/kdsm, engine.database.KdsmModel); the engine's `kdsm` pose model
+(engine.pose_models.KdsmPoseModel) predicts d, re-embeds rest + d and skins the parent tets (world positions).
+
+`--compare` runs the paper's comparison on the same frames, the same clip folds and the same network: (a) d learned
+in the KDSM against (b) the garment's rest-frame offsets learned from its own skinning (what the `regressor` learns),
+both scored as posed world positions against the held-out clips' drapes (and, when given, `--beta0-pack`: the
+evaluation's held-out poses draped at beta0, evaluate.beta0).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..body.kinematics import forward_kinematics, linear_blend_skinning
+from ..build.regressor import RegressorSettings, TrainingData, clip_folds, fit, pack_data, pose_dofs, predict
+from .embedding import KdsmPoser
+from .mesh import KDSM, KDSMSettings, build_kdsm
+from .training import GarmentFrames, drape_clearance, pack_frames, spread_frames, training_targets
+
+
+@dataclass(frozen=True)
+class KdsmModelSettings:
+    frames: int = 2000  # pack frames spread evenly over the training clips (inverse embedding: ~0.2 s each)
+    spacing: float = 0.025  # m: the KDSM's lattice step
+    margin: float = 0.02  # m: shell thickness = the pack's farthest drape vertex from the posed body + margin
+    clearance_frames: int = 0  # frames measured for the clearance (0: every frame of the pack)
+    regressor: RegressorSettings = field(default_factory=RegressorSettings)  # PCA + MLP, as the `regressor`
+
+
+def database_kdsm(db, body, shape, pack, settings: KdsmModelSettings) -> KDSM:
+    """The database garment's KDSM at beta0, thick enough to hold every drape of the pack (plus the margin)."""
+    measured = spread_frames(pack, settings.clearance_frames or len(pack["rotvecs"]))
+    clearance = drape_clearance(body, shape, pack_frames(pack, db, body, shape, measured))
+    thickness = float(clearance.max() + settings.margin)
+    kdsm = build_kdsm(body, shape, KDSMSettings(spacing=settings.spacing, thickness=thickness, reach=thickness),
+                      crop_points=db.rest)
+    kdsm.info.update({"clearance_max_m": float(clearance.max()), "clearance_frames": int(len(measured))})
+    return kdsm
+
+
+def example_frames(db, body, shape) -> GarmentFrames:
+    """The database's beta0 drapes (anchors' and pose-model examples') as GarmentFrames (frame index -1)."""
+    from ..engine.kernels import unpose
+    from ..engine.pose_models import canonical_poses
+
+    poses = canonical_poses(db.example_poses)
+    heads = np.ascontiguousarray(shape.heads, dtype=np.float64)
+    skin_i = np.ascontiguousarray(db.skin_indices, dtype=np.int32)
+    skin_w = np.ascontiguousarray(db.skin_weights, dtype=np.float64)
+    transforms = np.empty((len(poses), body.n_bones, 3, 4))
+    drapes = np.asarray(db.example_drapes, dtype=np.float64)
+    unposed = np.empty_like(drapes)
+    for m, pose in enumerate(poses):
+        forward_kinematics(pose, np.zeros(3), heads, body.parents, transforms[m])
+        unpose(drapes[m], skin_i, skin_w, transforms[m], unposed[m])
+    return GarmentFrames(np.asarray(db.rest, dtype=np.float64), np.asarray(db.faces), skin_i, skin_w, transforms,
+                         drapes, unposed, np.full(len(poses), -1, dtype=np.int64))
+
+
+@dataclass
+class KdsmTargets:
+    """Training data of both models for the same F frames: pose, clip, posed drape, bone transforms, KDSM target d
+    and rest-frame garment (the `regressor`'s target). Examples (the database's beta0 drapes) have clip "examples"."""
+
+    poses: np.ndarray  # (F, B, 3) canonical rotation vectors
+    groups: np.ndarray  # (F,) str clip names
+    frames: np.ndarray  # (F,) pack frame index (-1: a database drape)
+    transforms: np.ndarray  # (F, B, 3, 4) beta0 bone transforms, root translation zero
+    drapes: np.ndarray  # (F, V, 3) posed ground truth
+    displacements: np.ndarray  # (F, V, 3) d of the hybrid inverse embedding
+    status: np.ndarray  # (F, V) int8 (kdsm.inverse status)
+    unposed: np.ndarray  # (F, V, 3) the rest-frame garment (the drape unposed with the garment's weights)
+
+    def subset(self, rows) -> "KdsmTargets":
+        return KdsmTargets(**{k: v[rows] for k, v in self.__dict__.items()})
+
+    def kdsm_data(self) -> TrainingData:
+        return TrainingData(self.poses, self.displacements, self.groups)
+
+    def offset_data(self) -> TrainingData:
+        return TrainingData(self.poses, self.unposed, self.groups)
+
+
+def kdsm_targets(kdsm: KDSM, db, body, shape, pack, count: int, max_offset: float | None = 0.5,
+                 examples: bool = True, progress: bool = False) -> KdsmTargets:
+    """Inverse-embed `count` pack frames spread over its clips (left out: frames the `regressor` leaves out, whose
+    garment strays more than max_offset from its skinned place) and, with `examples`, the database's beta0 drapes."""
+    from ..engine.pose_models import canonical_poses
+
+    frames = spread_frames(pack, count)
+    if max_offset is not None:
+        stray = np.linalg.norm(np.asarray(pack["offsets"][frames]), axis=2).max(axis=1)
+        frames = frames[stray <= max_offset]
+    pack_data(pack, db)  # refuses test clips and another garment
+    parts = [(pack_frames(pack, db, body, shape, frames),
+              np.array([str(n) for n in pack["clips"]])[pack["clip"][frames]],
+              canonical_poses(pack["rotvecs"][frames]))]
+    if examples:
+        parts.append((example_frames(db, body, shape), np.array(["examples"] * len(db.example_poses)),
+                      canonical_poses(db.example_poses)))
+    out = []
+    for data, groups, poses in parts:
+        d, status = training_targets(kdsm, body, shape, data, progress=progress)
+        out.append(KdsmTargets(poses, groups, data.frames, data.transforms, data.drapes, d, status, data.unposed))
+    return KdsmTargets(**{k: np.concatenate([getattr(t, k) for t in out]) for k in out[0].__dict__})
+
+
+def save_targets(path, targets: KdsmTargets, key: dict) -> None:
+    np.savez_compressed(path, key=json.dumps(key, sort_keys=True), **targets.__dict__)
+
+
+def load_targets(path, key: dict) -> KdsmTargets | None:
+    """Targets saved by save_targets for the same key (None when absent or made otherwise)."""
+    if not Path(path).is_file():
+        return None
+    with np.load(path) as data:
+        if str(data["key"]) != json.dumps(key, sort_keys=True):
+            return None
+        return KdsmTargets(**{k: data[k] for k in KdsmTargets.__dataclass_fields__})
+
+
+def training_rows(targets: KdsmTargets, rows, copies: int) -> np.ndarray:
+    """Indices of `rows` (pack frames) plus `copies` copies of the database's drapes (group "examples")."""
+    examples = np.flatnonzero(targets.groups == "examples")
+    return np.concatenate([np.asarray(rows, dtype=np.int64)] + [examples] * copies)
+
+
+def fit_displacements(targets: KdsmTargets, rows, dofs, settings: RegressorSettings):
+    """The regressor (engine.database.Regressor) of d(theta) trained on `rows` of targets (and the drapes
+    settings.examples times): build.regressor.fit on the plastic displacements instead of rest-frame positions."""
+    train = targets.subset(training_rows(targets, rows, settings.examples))
+    return fit(train.kdsm_data(), dofs, settings)[0]
+
+
+def fit_offsets(targets: KdsmTargets, rows, dofs, settings: RegressorSettings):
+    """The same regressor trained on the rest-frame garment of the same rows (what the `regressor` learns)."""
+    train = targets.subset(training_rows(targets, rows, settings.examples))
+    return fit(train.offset_data(), dofs, settings)[0]
+
+
+def posed_kdsm(kdsm: KDSM, rest, skin_indices, skin_weights, transforms, displacements):
+    """(F, V, 3) world positions of displacements (F, V, 3) through the KDSM at poses `transforms` (F, B, 3, 4), and
+    the count of vertex-frames skinned outside the shell."""
+    poser = KdsmPoser(kdsm, rest, skin_indices, skin_weights)
+    out = np.empty(displacements.shape)
+    outside = 0
+    for n in range(len(displacements)):
+        out[n] = poser.pose(transforms[n], displacements[n])
+        outside += poser.fallback_count
+    return out, outside
+
+
+def posed_skinned(rest_frame, skin_indices, skin_weights, transforms):
+    """(F, V, 3) rest-frame garments (F, V, 3) skinned with the garment's weights at `transforms` (F, B, 3, 4)."""
+    skin_i = np.ascontiguousarray(skin_indices, dtype=np.int32)
+    skin_w = np.ascontiguousarray(skin_weights, dtype=np.float64)
+    out = np.empty(rest_frame.shape)
+    for n in range(len(rest_frame)):
+        linear_blend_skinning(np.ascontiguousarray(rest_frame[n], dtype=np.float64), skin_i, skin_w,
+                              np.ascontiguousarray(transforms[n], dtype=np.float64), out[n])
+    return out
+
+
+def _errors(posed, drapes) -> np.ndarray:
+    """(F,) mean vertex distance per frame (m)."""
+    return np.linalg.norm(posed - drapes, axis=2).mean(axis=1)
+
+
+def _projected(regressor, truth):
+    """truth (F, V, 3) projected on the regressor's PCA (what G components can hold)."""
+    basis = regressor.basis.reshape(len(regressor.basis), -1).astype(np.float64)
+    mean = regressor.mean.reshape(-1).astype(np.float64)
+    centred = truth.reshape(len(truth), -1) - mean
+    return ((centred @ basis.T) @ basis + mean).reshape(truth.shape)
+
+
+def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSettings, folds: int = 3) -> dict:
+    """The paper's comparison on held-out clips: per fold (whole clips, build.regressor.clip_folds) both models are
+    trained on the other clips' frames (plus the database's drapes, settings.examples times) with the same network
+    and scored on the held-out clips' frames as posed world positions (mean vertex distance, cm). Also: each target
+    through its own map (the KDSM's inverse embedding error; the skinned offsets are exact), each target projected on
+    its model's PCA, no pose dependence (the rest garment skinned; the fixed embedding, d = 0)."""
+    rest = np.asarray(db.rest, dtype=np.float64)
+    skin_i, skin_w = db.skin_indices, db.skin_weights
+    pack_rows = np.flatnonzero(targets.groups != "examples")
+    clips = np.unique(targets.groups[pack_rows])
+    names = ("kdsm", "offsets", "kdsm_targets", "kdsm_pca", "offsets_pca", "rest_skinned", "fixed_embedding")
+    errors = {n: [] for n in names}
+    outside = {"kdsm": 0, "kdsm_targets": 0}
+    fold_rows, seconds = [], {"fit_kdsm": 0.0, "fit_offsets": 0.0}
+    for held in clip_folds(clips, folds):
+        test = pack_rows[np.isin(targets.groups[pack_rows], held)]
+        train = pack_rows[~np.isin(targets.groups[pack_rows], held)]
+        t = targets.subset(test)
+        started = time.perf_counter()
+        reg_d = fit_displacements(targets, train, dofs, settings)
+        seconds["fit_kdsm"] += time.perf_counter() - started
+        started = time.perf_counter()
+        reg_x = fit_offsets(targets, train, dofs, settings)
+        seconds["fit_offsets"] += time.perf_counter() - started
+        d = predict(reg_d, t.poses)
+        posed, out = posed_kdsm(kdsm, rest, skin_i, skin_w, t.transforms, d)
+        errors["kdsm"].append(_errors(posed, t.drapes))
+        outside["kdsm"] += out
+        errors["offsets"].append(_errors(posed_skinned(predict(reg_x, t.poses), skin_i, skin_w, t.transforms),
+                                         t.drapes))
+        posed, out = posed_kdsm(kdsm, rest, skin_i, skin_w, t.transforms, t.displacements)
+        errors["kdsm_targets"].append(_errors(posed, t.drapes))
+        outside["kdsm_targets"] += out
+        posed, _ = posed_kdsm(kdsm, rest, skin_i, skin_w, t.transforms, _projected(reg_d, t.displacements))
+        errors["kdsm_pca"].append(_errors(posed, t.drapes))
+        errors["offsets_pca"].append(_errors(posed_skinned(_projected(reg_x, t.unposed), skin_i, skin_w,
+                                                           t.transforms), t.drapes))
+        errors["rest_skinned"].append(_errors(posed_skinned(np.broadcast_to(rest, t.unposed.shape), skin_i, skin_w,
+                                                            t.transforms), t.drapes))
+        posed, _ = posed_kdsm(kdsm, rest, skin_i, skin_w, t.transforms, np.zeros_like(t.displacements))
+        errors["fixed_embedding"].append(_errors(posed, t.drapes))
+        fold_rows.append({"clips": list(held), "frames": int(len(test)),
+                          "kdsm_cm": float(errors["kdsm"][-1].mean() * 100),
+                          "offsets_cm": float(errors["offsets"][-1].mean() * 100)})
+    total = sum(len(e) for e in errors["kdsm"])
+    report = {n: float(np.concatenate(errors[n]).mean() * 100) for n in names}
+    per_frame = {n: np.concatenate(errors[n]) for n in ("kdsm", "offsets")}
+    return {"error_cm": report, "frames": int(total), "vertices": int(len(rest)), "folds": fold_rows,
+            "outside_shell_fraction": {k: v / (total * len(rest)) for k, v in outside.items()},
+            "kdsm_better_frames": float((per_frame["kdsm"] < per_frame["offsets"]).mean()),
+            "fit_seconds": seconds, "settings": asdict(settings), "dofs": int(len(dofs)),
+            "training_rows_per_fold": "other folds' pack frames + examples x database drapes"}
+
+
+def test_set_errors(kdsm: KDSM, db, body, shape, targets: KdsmTargets, dofs, settings: RegressorSettings, poses,
+                    drapes) -> dict:
+    """Both models trained on every pack frame of `targets` (plus the drapes) and scored on held-out poses (P, B, 3)
+    draped at beta0 (P, V, 3) (evaluate.beta0): mean vertex distance (cm), all and per pose."""
+    from ..engine.pose_models import canonical_poses
+
+    rows = np.flatnonzero(targets.groups != "examples")
+    poses = canonical_poses(poses)
+    heads = np.ascontiguousarray(shape.heads, dtype=np.float64)
+    transforms = np.empty((len(poses), body.n_bones, 3, 4))
+    for n, pose in enumerate(poses):
+        forward_kinematics(pose, np.zeros(3), heads, body.parents, transforms[n])
+    rest = np.asarray(db.rest, dtype=np.float64)
+    drapes = np.asarray(drapes, dtype=np.float64)
+    reg_d = fit_displacements(targets, rows, dofs, settings)
+    reg_x = fit_offsets(targets, rows, dofs, settings)
+    posed_d, outside = posed_kdsm(kdsm, rest, db.skin_indices, db.skin_weights, transforms, predict(reg_d, poses))
+    posed_x = posed_skinned(predict(reg_x, poses), db.skin_indices, db.skin_weights, transforms)
+    rest_skinned = posed_skinned(np.broadcast_to(rest, drapes.shape), db.skin_indices, db.skin_weights, transforms)
+    fixed, _ = posed_kdsm(kdsm, rest, db.skin_indices, db.skin_weights, transforms, np.zeros_like(drapes))
+    rows_out = {"kdsm": _errors(posed_d, drapes), "offsets": _errors(posed_x, drapes),
+                "rest_skinned": _errors(rest_skinned, drapes), "fixed_embedding": _errors(fixed, drapes)}
+    return {"poses": int(len(poses)), "error_cm": {k: float(v.mean() * 100) for k, v in rows_out.items()},
+            "per_pose_cm": {k: (v * 100).round(3).tolist() for k, v in rows_out.items()},
+            "outside_shell_fraction": outside / drapes.shape[0] / drapes.shape[1],
+            "models": (reg_d, reg_x)}
+
+
+def frame_cost(db_path, body, poses, repeats: int = 5) -> dict:
+    """ms per frame of the engine with each learned pose model alone (no shape model), one thread: median over
+    `repeats` interleaved passes of `poses` (P, B, 3)."""
+    from ..engine import Engine, EngineConfig
+    from ..engine.database import read_database
+
+    db = read_database(db_path)
+    engines = {name: Engine(db, body, EngineConfig(pose_model=name, shape_model=False))
+               for name in ("kdsm", "regressor", "lbs") if name != "regressor" or db.regressor is not None}
+    times = {name: [] for name in engines}
+    zero = np.zeros(3)
+    for engine in engines.values():
+        engine.synthesize(poses[0], zero)  # compiled, warm
+    for _ in range(repeats):
+        for name, engine in engines.items():
+            started = time.perf_counter()
+            for pose in poses:
+                engine.synthesize(pose, zero)
+            times[name].append((time.perf_counter() - started) / len(poses) * 1e3)
+    return {name: float(np.median(t)) for name, t in times.items()}
+
+
+def store_kdsm_model(source, path, model) -> Path:
+    """A copy of the database `source` with the KDSM group (engine.database.KdsmModel) written into it at `path`
+    (atomically: build.regressor.store_in_database)."""
+    from ..build.regressor import store_in_database
+    from ..engine.database import write_kdsm_model
+
+    return store_in_database(path, lambda h5: write_kdsm_model(h5, model), source=source)
+
+
+def targets_key(db_path, pack_path, settings: KdsmModelSettings, examples: bool = True,
+                max_offset: float | None = 0.5) -> dict:
+    return {"database": str(db_path), "pack": str(pack_path), "frames": settings.frames, "spacing": settings.spacing,
+            "margin": settings.margin, "examples": examples, "max_offset": max_offset}
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    from ..body import AnnyBody
+    from ..build.sequences import load_sequence_pack
+    from ..engine.database import KdsmModel, read_database
+    from .mesh import load_kdsm, save_kdsm
+
+    parser = argparse.ArgumentParser(prog="python -m agentdress_ros.kdsm.model", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--database", required=True)
+    parser.add_argument("--pack", required=True)
+    parser.add_argument("--out", required=True, help="database copy to write with the pose_model/kdsm group")
+    defaults = KdsmModelSettings()
+    parser.add_argument("--frames", type=int, default=defaults.frames)
+    parser.add_argument("--spacing", type=float, default=defaults.spacing)
+    parser.add_argument("--margin", type=float, default=defaults.margin)
+    parser.add_argument("--targets", default=None, help=".npz cache of the inverse-embedded frames (and the KDSM "
+                        "beside it, <name>_mesh.npz): reused when made from the same data and settings")
+    parser.add_argument("--folds", type=int, default=3, help="clip folds of the comparison")
+    parser.add_argument("--compare", action="store_true", help="the comparison with rest-frame offsets (held-out "
+                        "clips of the pack; with --beta0-pack also the evaluation's held-out poses at beta0)")
+    parser.add_argument("--beta0-pack", default=None, help="packed drapes of the held-out poses at beta0 "
+                        "(docs/eval/ground_truth_beta0.npz; a copy is used, the file is left alone)")
+    parser.add_argument("--report", default=None, help="write the report (JSON) here too")
+    args = parser.parse_args(argv)
+    settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin)
+    reg_settings = settings.regressor
+
+    started = time.perf_counter()
+    db = read_database(args.database)
+    body = AnnyBody()
+    shape = body.shape(db.beta0)
+    pack = load_sequence_pack(args.pack)
+    key = targets_key(args.database, args.pack, settings)
+    mesh_path = None if args.targets is None else Path(args.targets).with_name(Path(args.targets).stem + "_mesh.npz")
+    targets = None if args.targets is None else load_targets(args.targets, key)
+    if targets is not None and mesh_path.is_file():
+        kdsm = load_kdsm(mesh_path)
+    else:
+        kdsm = database_kdsm(db, body, shape, pack, settings)
+        targets = kdsm_targets(kdsm, db, body, shape, pack, settings.frames, progress=True)
+        if args.targets is not None:
+            save_kdsm(mesh_path, kdsm)
+            save_targets(args.targets, targets, key)
+    target_seconds = time.perf_counter() - started
+    dofs = pose_dofs(db, reg_settings.features)
+    report = {"kdsm": kdsm.info, "frames": int((targets.groups != "examples").sum()),
+              "clips": int(len(np.unique(targets.groups[targets.groups != "examples"]))),
+              "example_drapes": int((targets.groups == "examples").sum()), "targets_seconds": target_seconds}
+    rows = np.flatnonzero(targets.groups != "examples")
+    started = time.perf_counter()
+    regressor = fit_displacements(targets, rows, dofs, reg_settings)
+    report["fit_seconds"] = time.perf_counter() - started
+    info = {"settings": json.loads(json.dumps(asdict(settings))), "pack": str(args.pack),
+            "frames": report["frames"], "clips": report["clips"], "example_drapes": report["example_drapes"]}
+    regressor = replace(regressor, info={**regressor.info, **info})
+    model = KdsmModel(kdsm=kdsm, rest=np.asarray(db.rest, dtype=np.float32), regressor=regressor, info=info)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    store_kdsm_model(args.database, args.out, model)
+    report["out"] = str(args.out)
+    report["bytes"] = {"database": Path(args.database).stat().st_size, "out": Path(args.out).stat().st_size}
+    if args.compare:
+        report["clip_folds"] = compare(kdsm, db, targets, dofs, reg_settings, args.folds)
+        if args.beta0_pack:
+            report["test_set_beta0"] = beta0_comparison(kdsm, db, body, shape, targets, dofs, reg_settings,
+                                                        args.beta0_pack)
+        from ..evaluate.testset import HeldOutConfig, default_clip_paths, held_out_poses
+
+        _, _, sequence, _ = held_out_poses(body, HeldOutConfig(clips=default_clip_paths()[:1]))
+        report["ms_per_frame"] = frame_cost(args.out, body, sequence)
+        report["ms_per_frame_poses"] = int(len(sequence))
+    text = json.dumps(report, indent=1)
+    if args.report:
+        Path(args.report).write_text(text + "\n")
+    print(text)
+    return 0
+
+
+def beta0_comparison(kdsm, db, body, shape, targets, dofs, settings, pack) -> dict:
+    """test_set_errors on the evaluation's held-out poses at beta0 (evaluate.beta0, from a copy of the packed
+    drapes: nothing is draped when the pack holds them all)."""
+    import shutil
+    import tempfile
+
+    from ..evaluate.beta0 import held_out_beta0
+    from ..evaluate.testset import HeldOutConfig, default_clip_paths
+    from ..garment import make_garment
+
+    garment = make_garment(db.garment, body, db.n_vertices)
+    with tempfile.TemporaryDirectory() as folder:
+        copy = Path(folder) / "ground_truth_beta0.npz"
+        shutil.copyfile(pack, copy)
+        drapes, poses, labels = held_out_beta0(db, body, garment, HeldOutConfig(clips=default_clip_paths()),
+                                               Path(folder) / "cache", workers=0, progress=False, pack=copy)
+    out = test_set_errors(kdsm, db, body, shape, targets, dofs, settings, poses, drapes)
+    out.pop("models")
+    out["labels"] = labels
+    return out
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
