@@ -4,8 +4,8 @@ Chromium with real WebGL in software (SwiftShader through ANGLE), driven over th
 
 Checked: the page reports three.js' WebGL renderer; the screenshot is not blank, shows the garment colours and changes
 as the agent walks; the body the page skins on the GPU is the node's body cloud of the same stamp; with navigator.xr
-stubbed to support immersive-vr the "Enter VR" button appears and a session runs the XR render loop; a shape slider reaches the node and changes the mesh; requests and WebSockets without the
-access token get 403; the frames per second reaching the page (written to out/client_fps.json). With the environment
+stubbed to support immersive-vr the "Enter VR" button appears and a session runs the XR render loop; a shape
+slider reaches the node and changes the mesh; requests and WebSockets without the access token get 403; the frames per second reaching the page (written to out/client_fps.json). With the environment
 variable AGENTDRESS_PICTURES=<folder>, `make run` itself is started and its screenshot saved there (README picture).
 Skipped, with the reason, without Chromium (Debian: `apt-get install -y chromium`; .ci/run installs it).
 """
