@@ -44,7 +44,8 @@ PARAMETERS: dict[str, Spec] = {
                               "changed (late subscribers get a frame within 1 s at no synthesis cost); 0 = off"),
     "marker_rate_hz": Spec(0.0, "visualization_msgs/Marker TRIANGLE_LIST rate for RViz, Hz, in [0, 10]; 0 = off"),
     "status_rate_hz": Spec(1.0, "rate of the JSON status on ~/status, Hz, in (0, 50]"),
-    "publish_body": Spec(False, "also publish the posed body surface on ~/body/points and ~/body/mesh"),
+    "publish_body": Spec(False, "also publish the posed body surface on ~/body/points and ~/body/mesh, and its "
+                                "skin and bones (~/body/skin, ~/body/bones)"),
     "answer_on_arrival": Spec(True, "dress a new pose as soon as it arrives (unless within half a period of the last "
                                     "answer: the timer takes those), so latency is not tied to the timer's phase"),
     "frame_id": Spec("agent", "frame_id stamped on every published message"),
