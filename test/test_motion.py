@@ -558,3 +558,14 @@ def test_procedural_rest_start():
         rotvecs, translation = procedural.MOTIONS[name](np.array([0.0]))
         np.testing.assert_allclose(rotvecs, 0.0, atol=1e-12)
         np.testing.assert_allclose(translation, 0.0, atol=1e-12)
+
+
+def test_quaternion_to_matrix_inverts_matrix_to_quaternion():
+    from agentdress_ros.motion.rotations import matrix_to_quaternion, quaternion_to_matrix, rotvec_to_matrix
+
+    rng = np.random.default_rng(5)
+    axes = rng.normal(size=(40, 3))
+    angles = np.concatenate([[0.0, np.pi, np.pi - 1e-9], rng.uniform(0, np.pi, 37)])
+    matrices = rotvec_to_matrix(axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None])
+    assert np.abs(quaternion_to_matrix(matrix_to_quaternion(matrices)) - matrices).max() < 1e-12
+    assert quaternion_to_matrix(matrix_to_quaternion(matrices.reshape(4, 10, 3, 3))).shape == (4, 10, 3, 3)

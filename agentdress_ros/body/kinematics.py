@@ -76,21 +76,27 @@ def forward_kinematics(rotvecs, root_translation, rest_heads, parents, transform
 
 
 @numba.njit(cache=True, fastmath=True, inline="always")
-def _skin_vertex(rest, skin_indices, skin_weights, transforms, v):
-    """sum_k w_vk T_{i_vk} [rest_v; 1] as three scalars (zero-weight slots skipped)."""
-    x, y, z = rest[v, 0], rest[v, 1], rest[v, 2]
+def skin_point(x, y, z, skin_indices, skin_weights, row, transforms):
+    """sum_k w_k T_{i_k} [x; y; z; 1] for the influences of `row` of skin_indices/skin_weights (zero weights
+    skipped), as three scalars: the one skinning step of every kernel here and of the KDSM's."""
     ox = 0.0
     oy = 0.0
     oz = 0.0
     for k in range(skin_indices.shape[1]):
-        w = skin_weights[v, k]
+        w = skin_weights[row, k]
         if w == 0.0:
             continue
-        b = skin_indices[v, k]
+        b = skin_indices[row, k]
         ox += w * (transforms[b, 0, 0] * x + transforms[b, 0, 1] * y + transforms[b, 0, 2] * z + transforms[b, 0, 3])
         oy += w * (transforms[b, 1, 0] * x + transforms[b, 1, 1] * y + transforms[b, 1, 2] * z + transforms[b, 1, 3])
         oz += w * (transforms[b, 2, 0] * x + transforms[b, 2, 1] * y + transforms[b, 2, 2] * z + transforms[b, 2, 3])
     return ox, oy, oz
+
+
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _skin_vertex(rest, skin_indices, skin_weights, transforms, v):
+    """sum_k w_vk T_{i_vk} [rest_v; 1] as three scalars (zero-weight slots skipped)."""
+    return skin_point(rest[v, 0], rest[v, 1], rest[v, 2], skin_indices, skin_weights, v, transforms)
 
 
 @numba.njit(cache=True, fastmath=True)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from ..body.kinematics import skin_point
 from .lattice import locate_lattice_tet
 from .mesh import KDSM
 
@@ -71,19 +72,19 @@ def embed_points(points, origin, spacing, dims, lattice_tets, vertices, tets, cl
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _skin_point(x, y, z, skin_indices, skin_weights, row, transforms):
-    """sum_k w_k T_{i_k} [x; y; z; 1] for the influences of `row` (zero weights skipped)."""
+def _skin_tet(t, l0, l1, l2, l3, vertices, tets, skin_indices, skin_weights, transforms):
+    """sum_c lambda_c v_c(theta) over the four skinned vertices of tet t, as three scalars."""
     ox = 0.0
     oy = 0.0
     oz = 0.0
-    for k in range(skin_indices.shape[1]):
-        w = skin_weights[row, k]
-        if w == 0.0:
-            continue
-        b = skin_indices[row, k]
-        ox += w * (transforms[b, 0, 0] * x + transforms[b, 0, 1] * y + transforms[b, 0, 2] * z + transforms[b, 0, 3])
-        oy += w * (transforms[b, 1, 0] * x + transforms[b, 1, 1] * y + transforms[b, 1, 2] * z + transforms[b, 1, 3])
-        oz += w * (transforms[b, 2, 0] * x + transforms[b, 2, 1] * y + transforms[b, 2, 2] * z + transforms[b, 2, 3])
+    for c in range(4):
+        v = tets[t, c]
+        vx, vy, vz = skin_point(vertices[v, 0], vertices[v, 1], vertices[v, 2], skin_indices, skin_weights, v,
+                                transforms)
+        lam = l0 if c == 0 else (l1 if c == 1 else (l2 if c == 2 else l3))
+        ox += lam * vx
+        oy += lam * vy
+        oz += lam * vz
     return ox, oy, oz
 
 
@@ -99,23 +100,12 @@ def pose_embedded(points, embed_tets, embed_weights, vertices, tets, skin_indice
     for p in range(points.shape[0]):
         t = embed_tets[p]
         if t < 0:
-            out[p, 0], out[p, 1], out[p, 2] = _skin_point(points[p, 0], points[p, 1], points[p, 2],
-                                                          fallback_indices, fallback_weights, p, transforms)
+            out[p, 0], out[p, 1], out[p, 2] = skin_point(points[p, 0], points[p, 1], points[p, 2],
+                                                         fallback_indices, fallback_weights, p, transforms)
             continue
-        ox = 0.0
-        oy = 0.0
-        oz = 0.0
-        for c in range(4):
-            v = tets[t, c]
-            vx, vy, vz = _skin_point(vertices[v, 0], vertices[v, 1], vertices[v, 2], skin_indices, skin_weights, v,
-                                     transforms)
-            lam = embed_weights[p, c]
-            ox += lam * vx
-            oy += lam * vy
-            oz += lam * vz
-        out[p, 0] = ox
-        out[p, 1] = oy
-        out[p, 2] = oz
+        out[p, 0], out[p, 1], out[p, 2] = _skin_tet(t, embed_weights[p, 0], embed_weights[p, 1],
+                                                    embed_weights[p, 2], embed_weights[p, 3], vertices, tets,
+                                                    skin_indices, skin_weights, transforms)
     return out
 
 
@@ -135,23 +125,11 @@ def pose_displaced(rest_points, displacements, origin, spacing, dims, lattice_te
         parent_tets[p] = t
         if t < 0:
             outside += 1
-            out[p, 0], out[p, 1], out[p, 2] = _skin_point(x, y, z, fallback_indices, fallback_weights, p, transforms)
+            out[p, 0], out[p, 1], out[p, 2] = skin_point(x, y, z, fallback_indices, fallback_weights, p, transforms)
             continue
         l0, l1, l2, l3 = _rest_barycentric(t, lattice, x, y, z, vertices, tets, class_inverse)
-        ox = 0.0
-        oy = 0.0
-        oz = 0.0
-        for c in range(4):
-            v = tets[t, c]
-            vx, vy, vz = _skin_point(vertices[v, 0], vertices[v, 1], vertices[v, 2], skin_indices, skin_weights, v,
-                                     transforms)
-            lam = l0 if c == 0 else (l1 if c == 1 else (l2 if c == 2 else l3))
-            ox += lam * vx
-            oy += lam * vy
-            oz += lam * vz
-        out[p, 0] = ox
-        out[p, 1] = oy
-        out[p, 2] = oz
+        out[p, 0], out[p, 1], out[p, 2] = _skin_tet(t, l0, l1, l2, l3, vertices, tets, skin_indices, skin_weights,
+                                                    transforms)
     return outside
 
 

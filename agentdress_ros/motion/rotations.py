@@ -14,6 +14,7 @@ __all__ = [
     "euler_to_matrix",
     "matrix_to_quaternion",
     "matrix_to_rotvec",
+    "quaternion_to_matrix",
     "quaternion_to_rotvec",
     "rotation_between",
     "rotvec_to_matrix",
@@ -84,6 +85,15 @@ def matrix_to_quaternion(matrices) -> np.ndarray:
         )
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., 3:4] < 0.0, -q, q)
+
+
+def quaternion_to_matrix(quaternions) -> np.ndarray:
+    """Unit quaternions (..., 4) as (x, y, z, w) -> rotation matrices (..., 3, 3)."""
+    x, y, z, w = np.moveaxis(np.asarray(quaternions, dtype=np.float64), -1, 0)
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                     2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                     2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1).reshape(
+        np.shape(quaternions)[:-1] + (3, 3))
 
 
 def quaternion_to_rotvec(quaternions) -> np.ndarray:

@@ -277,17 +277,11 @@ class SerializedBones:
         return self.data
 
 
-def quaternions_to_matrices(quaternions: np.ndarray) -> np.ndarray:
-    """Unit quaternions (N, 4) as (x, y, z, w) -> rotation matrices (N, 3, 3)."""
-    x, y, z, w = np.asarray(quaternions, dtype=np.float64).T
-    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-                     2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-                     2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
-
-
 def _poses_to_transforms(poses: np.ndarray) -> np.ndarray:
     out = np.empty((len(poses), 3, 4), dtype=np.float32)
-    out[:, :, :3] = quaternions_to_matrices(poses[:, 3:])
+    from ..motion.rotations import quaternion_to_matrix
+
+    out[:, :, :3] = quaternion_to_matrix(poses[:, 3:])
     out[:, :, 3] = poses[:, :3]
     return out
 
