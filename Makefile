@@ -73,5 +73,7 @@ bench-node: setup
 regressor: setup-test
 	$(BIN)/agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 	$(BIN)/agentdress regressor --database data/trousers_default.h5 --pack data/trousers_sequences.npz
+	$(BIN)/agentdress santesteban --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+	$(BIN)/agentdress santesteban --database data/trousers_default.h5 --pack data/trousers_sequences.npz
 	$(BIN)/agentdress eval --database data/tshirt_default.h5 --out docs/eval --workers 0 --quiet
 	$(BIN)/agentdress eval --database data/trousers_default.h5 --out docs/eval/trousers --workers 0 --quiet

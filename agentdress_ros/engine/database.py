@@ -41,6 +41,7 @@ at run time. A held-out shape that changes four phenotypes at once is reproduced
 | pose_model/kdsm/skin_indices, .../skin_weights, .../body_distance | (Nk, 4) int32, (Nk, 4) f64, (Nk,) f64 | the tet vertices' skinning and rest distance to the body |
 | pose_model/kdsm/rest | (V, 3) f32 | u^{m_o}: the rest garment the displacements are learned for (in this file's vertex order) |
 | pose_model/kdsm/regressor/... | as pose_model/regressor | the learned d(theta): PCA of the plastic displacements d, MLP from the pose |
+| garment_model/santesteban/fit/..., .../wrinkles/... | as pose_model/regressor, dofs in [0, D + 6) | optional garment model of Santesteban et al. 2019 (engine.santesteban): its inputs are the D pose dofs followed by the 6 phenotypes; fit R_G(beta) and wrinkles R_L(beta, theta), both rest-frame displacements of the garment; attrs info (JSON) |
 
 The regressor (Santesteban et al. 2019, Sec. 3-4) is f(beta0, theta) in the rest frame: the garment unposed with
 beta0's bones (their Eq. 5), reduced by PCA, regressed from the pose by an MLP (hidden layers `activation`, the last
@@ -86,6 +87,7 @@ MAX_LAYERS = 16
 
 
 KDSM_GROUP = "pose_model/kdsm"
+SANTESTEBAN_GROUP = "garment_model/santesteban"
 KDSM_ARRAYS = ("origin", "dims", "vertices", "tets", "class_inverse", "lattice_tets", "skin_indices", "skin_weights",
                "body_distance")
 
@@ -129,6 +131,29 @@ def write_regressor(h5, regressor: Regressor, name: str = REGRESSOR_GROUP) -> No
     group.attrs["activation"] = regressor.activation
     group.attrs["layers"] = len(regressor.weights)
     group.attrs["info"] = json.dumps(regressor.info)
+
+
+@dataclass(frozen=True)
+class SantestebanArrays:
+    """The garment model of Santesteban et al. 2019 (group garment_model/santesteban): two regressors whose input is
+    the pose's D dofs followed by the 6 phenotypes (their `dofs` index that vector), each predicting a rest-frame
+    displacement (V, 3) of the garment: `fit` R_G(beta) and `wrinkles` R_L(beta, theta)."""
+
+    fit: Regressor
+    wrinkles: Regressor
+    info: dict = field(default_factory=dict)
+
+    def vertex_rows(self, ids) -> "SantestebanArrays":
+        return replace(self, fit=self.fit.vertex_rows(ids), wrinkles=self.wrinkles.vertex_rows(ids))
+
+
+def write_santesteban(h5, arrays: SantestebanArrays) -> None:
+    """Write (or replace) the garment_model/santesteban group in an open, writable HDF5 file."""
+    if SANTESTEBAN_GROUP in h5:
+        del h5[SANTESTEBAN_GROUP]
+    write_regressor(h5, arrays.fit, SANTESTEBAN_GROUP + "/fit")
+    write_regressor(h5, arrays.wrinkles, SANTESTEBAN_GROUP + "/wrinkles")
+    h5[SANTESTEBAN_GROUP].attrs["info"] = json.dumps(arrays.info)
 
 
 @dataclass(frozen=True)
@@ -208,6 +233,7 @@ class Database:
     sequence_fps: float = 30.0
     regressor: "Regressor | None" = None
     kdsm_model: "KdsmModel | None" = None
+    santesteban: "SantestebanArrays | None" = None
     shape_basis: str = "absolute"
     binding_triangles: np.ndarray | None = None
     binding_barycentric: np.ndarray | None = None
@@ -303,6 +329,8 @@ def write_database(path, db: Database) -> Path:
             write_regressor(h5, db.regressor)
         if db.kdsm_model is not None:
             write_kdsm_model(h5, db.kdsm_model)
+        if db.santesteban is not None:
+            write_santesteban(h5, db.santesteban)
     partial.replace(path)
     return path
 
@@ -504,7 +532,26 @@ class _Reader:
             extras["binding_surface"] = self.text("garment/binding", "surface", allow_empty=False)
         extras["regressor"] = self.regressor()
         extras["kdsm_model"] = self.kdsm_model()
+        extras["santesteban"] = self.santesteban()
         return Database(**values, **extras)
+
+    def santesteban(self) -> SantestebanArrays | None:
+        """The optional garment_model/santesteban group (None when absent), its regressors checked like
+        pose_model/regressor with inputs the D pose dofs and the 6 phenotypes."""
+        self.where = f"group '{SANTESTEBAN_GROUP}'"
+        group = self.h5.get(SANTESTEBAN_GROUP)
+        if group is None:
+            return None
+        if not isinstance(group, h5py.Group):
+            self.fail("is a dataset, not a group")
+        info = self.json(SANTESTEBAN_GROUP, "info", "{}", dict)
+        self.sizes["D"], pose_dofs = (self.sizes["D"][0] + 6, self.sizes["D"][1]), self.sizes["D"]
+        try:
+            fit = self.regressor(SANTESTEBAN_GROUP + "/fit", required=True)
+            wrinkles = self.regressor(SANTESTEBAN_GROUP + "/wrinkles", required=True)
+        finally:
+            self.sizes["D"] = pose_dofs
+        return SantestebanArrays(fit=fit, wrinkles=wrinkles, info=info)
 
     def kdsm_model(self) -> KdsmModel | None:
         """The optional KDSM group (None when absent): the mesh's arrays checked for shapes, index ranges and

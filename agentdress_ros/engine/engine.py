@@ -106,6 +106,7 @@ def select_database(db: Database, config: EngineConfig) -> Database:
             example_drapes=changes.get("example_drapes", db.example_drapes)[:, ids],
             sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, ids],
             regressor=None if db.regressor is None else db.regressor.vertex_rows(ids),
+            santesteban=None if db.santesteban is None else db.santesteban.vertex_rows(ids),
             **_binding_rows(db, ids),
         )
     return replace(db, **changes) if changes else db
@@ -174,6 +175,7 @@ def permute_vertices(db: Database, order: np.ndarray) -> Database:
         example_drapes=db.example_drapes[:, order],
         sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, order],
         regressor=None if db.regressor is None else db.regressor.vertex_rows(order),
+        santesteban=None if db.santesteban is None else db.santesteban.vertex_rows(order),
         **_binding_rows(db, order))
 
 

@@ -195,6 +195,63 @@ class SequencePoseModel:
         return self.out
 
 
+class RegressorDecoder:
+    """A stored Regressor evaluated with numpy: an input vector's `dofs`, standardised, through the MLP to PCA
+    coefficients, decoded to a (3, V) array (x, y and z rows; `out`, an internal buffer). The output's
+    standardisation is folded into basis and mean: value = mean' + sum_g y_g (scale_g basis_g)."""
+
+    def __init__(self, reg, dtype=np.float64):
+        self.dofs = np.asarray(reg.dofs, dtype=np.int64)
+        self.input_mean = np.asarray(reg.input_mean, dtype=np.float64)
+        self.input_scale = np.asarray(reg.input_scale, dtype=np.float64)
+        self.weights = [np.ascontiguousarray(w, dtype=np.float64) for w in reg.weights]
+        self.biases = [np.asarray(b, dtype=np.float64) for b in reg.biases]
+        self.relu = reg.activation == "relu"
+        n_vertices = reg.mean.shape[0]
+        unit = np.asarray(reg.basis, dtype=np.float64)
+        basis = unit * np.asarray(reg.coefficient_scale, dtype=np.float64)[:, None, None]
+        mean = np.asarray(reg.mean, dtype=np.float64) + np.einsum("g,gvk->vk", reg.coefficient_mean.astype(np.float64),
+                                                                 unit)
+        self.basis = np.ascontiguousarray(np.transpose(basis, (0, 2, 1)).reshape(len(basis), 3 * n_vertices),
+                                          dtype=dtype)  # (G, 3V): x row, y row, z row
+        self.mean = np.ascontiguousarray(mean.T.reshape(-1), dtype=dtype)
+        self._allocate()
+
+    def _allocate(self):
+        self.hidden = [np.empty(w.shape[1]) for w in self.weights]
+        self.coefficients = np.empty(self.basis.shape[0], dtype=self.basis.dtype)
+        self.flat = np.empty(self.basis.shape[1], dtype=self.basis.dtype)
+        self.out = self.flat.reshape(3, -1)
+
+    def fork(self) -> "RegressorDecoder":
+        """A decoder sharing the weights, with buffers of its own."""
+        twin = copy.copy(self)
+        twin._allocate()
+        return twin
+
+    def coefficients_of(self, inputs) -> np.ndarray:
+        """The MLP's standardised output y (G,) for an input vector (whose `dofs` it reads)."""
+        x = (inputs.reshape(-1)[self.dofs] - self.input_mean) / self.input_scale
+        last = len(self.weights) - 1
+        for n, (w, b, h) in enumerate(zip(self.weights, self.biases, self.hidden)):
+            np.dot(x, w, out=h)
+            h += b
+            if n < last:
+                if self.relu:
+                    np.maximum(h, 0.0, out=h)
+                else:
+                    np.tanh(h, out=h)
+            x = h
+        return x
+
+    def decode(self, inputs) -> np.ndarray:
+        """(3, V) output for an input vector."""
+        self.coefficients[:] = self.coefficients_of(inputs)
+        np.dot(self.coefficients, self.basis, out=self.flat)
+        self.flat += self.mean
+        return self.out
+
+
 class RegressorPoseModel:
     """The learned pose model of the database's pose_model/regressor group (Santesteban et al. 2019, Sec. 3-4, at
     beta0): the pose's dofs, standardised, through an MLP to PCA coefficients of the garment unposed to the rest
@@ -212,54 +269,19 @@ class RegressorPoseModel:
         if reg is None:
             raise ValueError("pose model 'regressor' needs a database with pose_model/regressor (train one with "
                              "`agentdress regressor`)")
-        self.dofs = np.asarray(reg.dofs, dtype=np.int64)
-        self.input_mean = np.asarray(reg.input_mean, dtype=np.float64)
-        self.input_scale = np.asarray(reg.input_scale, dtype=np.float64)
-        self.weights = [np.ascontiguousarray(w, dtype=np.float64) for w in reg.weights]
-        self.biases = [np.asarray(b, dtype=np.float64) for b in reg.biases]
-        self.relu = reg.activation == "relu"
-        n_vertices = reg.mean.shape[0]
-        # the output's standardisation folded into basis and mean: position = mean' + sum_g y_g (scale_g basis_g)
-        unit = np.asarray(reg.basis, dtype=np.float64)
-        basis = unit * np.asarray(reg.coefficient_scale, dtype=np.float64)[:, None, None]
-        mean = np.asarray(reg.mean, dtype=np.float64) + np.einsum("g,gvk->vk", reg.coefficient_mean.astype(np.float64),
-                                                                 unit)
-        self.basis = np.ascontiguousarray(np.transpose(basis, (0, 2, 1)).reshape(len(basis), 3 * n_vertices),
-                                          dtype=context.dtype)  # (G, 3V): x row, y row, z row
-        self.mean = np.ascontiguousarray(mean.T.reshape(-1), dtype=context.dtype)
-        self._allocate()
-
-    def _allocate(self):
-        self.hidden = [np.empty(w.shape[1]) for w in self.weights]
-        self.coefficients = np.empty(self.basis.shape[0], dtype=self.basis.dtype)
-        self.flat = np.empty(self.basis.shape[1], dtype=self.basis.dtype)
-        self.out = self.flat.reshape(3, -1)
+        self.decoder = RegressorDecoder(reg, context.dtype)
 
     def fork(self, context: PoseModelContext) -> "RegressorPoseModel":
         twin = copy.copy(self)
-        twin._allocate()
+        twin.decoder = self.decoder.fork()
         return twin
 
     def coefficients_of(self, theta) -> np.ndarray:
         """The MLP's standardised output y (G,) for a canonical pose theta (B, 3)."""
-        x = (theta.reshape(-1)[self.dofs] - self.input_mean) / self.input_scale
-        last = len(self.weights) - 1
-        for n, (w, b, h) in enumerate(zip(self.weights, self.biases, self.hidden)):
-            np.dot(x, w, out=h)
-            h += b
-            if n < last:
-                if self.relu:
-                    np.maximum(h, 0.0, out=h)
-                else:
-                    np.tanh(h, out=h)
-            x = h
-        return x
+        return self.decoder.coefficients_of(theta)
 
     def evaluate(self, theta, root, frame):
-        self.coefficients[:] = self.coefficients_of(theta)
-        np.dot(self.coefficients, self.basis, out=self.flat)
-        self.flat += self.mean
-        return self.out
+        return self.decoder.decode(theta)
 
 
 class KdsmPoseModel:

@@ -34,12 +34,13 @@ class Row:
     results: dict = field(default_factory=dict)
 
 
-def trade_rows(n_anchors: int, n_components: int, regressor: bool = False) -> list[Row]:
+def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, santesteban: bool = False) -> list[Row]:
     """The rows of the trade table (the anchors' K and the examples pose model's K in {1, 3, 5, 8}, components in
     {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep: N
     anchors restrict both the shape models and the pose model's examples to those anchors (their beta0 drapes),
     the pose model's K staying 5 (capped at N). With `regressor` (the database has one), the learned pose model
-    alone and in synthesis, with and without its anchor residuals folded into the shape deltas."""
+    alone and in synthesis, with and without its anchor residuals folded into the shape deltas. With `santesteban`
+    (the database has garment_model/santesteban), Santesteban et al.'s own system (engine.santesteban)."""
     # sweeps around the node's default (the examples pose model, the most accurate measured)
     base = {"pose_model": "examples"}
     rows = [
@@ -80,6 +81,9 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False) -> li
             Row("synthesis with the regressor pose model, no fold", "regressor",
                 {"pose_model": "regressor", "fold": False}),
         ]
+    if santesteban:
+        rows.append(Row("Santesteban et al. 2019 system (fit and wrinkle regressors, own skinning, push-out "
+                        "post-process; no AgentDress synthesis)", "santesteban", {"model": "santesteban"}))
     return rows
 
 
@@ -122,6 +126,10 @@ def _model(row: Row, db, body, garment):
         from ..ros.garment_models import SkinnedGarmentModel
 
         return SkinnedGarmentModel(garment, body)
+    if row.config.get("model") == "santesteban":
+        from ..engine.santesteban import SantestebanModel
+
+        return SantestebanModel(db, body)
     from ..engine import Engine, EngineConfig
 
     return Engine(db, body, EngineConfig(**row.config))
@@ -347,7 +355,8 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     truth_inside = float(np.mean([inside_tests[p][k].fraction(test.drapes[p, k])
                                   for p in range(len(test.poses)) for k in range(len(test.betas))]))
 
-    rows = trade_rows(db.n_anchors, db.n_components, regressor=db.regressor is not None)
+    rows = trade_rows(db.n_anchors, db.n_components, regressor=db.regressor is not None,
+                      santesteban=db.santesteban is not None)
     repeats = 1 if quick else 3
     from tqdm import tqdm
 

@@ -41,9 +41,19 @@ class KdsmModelSettings:
     regressor: RegressorSettings = field(default_factory=RegressorSettings)  # PCA + MLP, as the `regressor`
 
 
+def kept_frames(pack: dict, frames: np.ndarray, max_offset: float | None) -> np.ndarray:
+    """The pack frames (indices) the `regressor` trains on: those whose garment strays at most max_offset (m) from
+    its skinned place (a sequence that lost the garment is no drape to hold or learn); all with None."""
+    if max_offset is None:
+        return frames
+    stray = np.linalg.norm(np.asarray(pack["offsets"][frames], dtype=np.float32), axis=2).max(axis=1)
+    return frames[stray <= max_offset]
+
+
 def database_kdsm(db, body, shape, pack, settings: KdsmModelSettings) -> KDSM:
     """The database garment's KDSM at beta0, thick enough to hold every drape of the pack (plus the margin)."""
-    measured = spread_frames(pack, settings.clearance_frames or len(pack["rotvecs"]))
+    measured = kept_frames(pack, spread_frames(pack, settings.clearance_frames or len(pack["rotvecs"])),
+                           settings.regressor.max_offset)
     clearance = drape_clearance(body, shape, pack_frames(pack, db, body, shape, measured))
     thickness = float(clearance.max() + settings.margin)
     kdsm = build_kdsm(body, shape, KDSMSettings(spacing=settings.spacing, thickness=thickness, reach=thickness),
@@ -101,10 +111,7 @@ def kdsm_targets(kdsm: KDSM, db, body, shape, pack, count: int, max_offset: floa
     garment strays more than max_offset from its skinned place) and, with `examples`, the database's beta0 drapes."""
     from ..engine.pose_models import canonical_poses
 
-    frames = spread_frames(pack, count)
-    if max_offset is not None:
-        stray = np.linalg.norm(np.asarray(pack["offsets"][frames]), axis=2).max(axis=1)
-        frames = frames[stray <= max_offset]
+    frames = kept_frames(pack, spread_frames(pack, count), max_offset)
     pack_data(pack, db)  # refuses test clips and another garment
     parts = [(pack_frames(pack, db, body, shape, frames),
               np.array([str(n) for n in pack["clips"]])[pack["clip"][frames]],
@@ -348,7 +355,8 @@ def main(argv=None) -> int:
         kdsm = load_kdsm(mesh_path)
     else:
         kdsm = database_kdsm(db, body, shape, pack, settings)
-        targets = kdsm_targets(kdsm, db, body, shape, pack, settings.frames, progress=True)
+        targets = kdsm_targets(kdsm, db, body, shape, pack, settings.frames, settings.regressor.max_offset,
+                               progress=True)
         if args.targets is not None:
             save_kdsm(mesh_path, kdsm)
             save_targets(args.targets, targets, key)

@@ -1,0 +1,145 @@
+"""The garment model of Santesteban et al. 2019 (their Sec. 3), beside AgentDress synthesis: `model=santesteban`.
+
+    unposed(beta, theta) = T + R_G(beta) + R_L(beta, theta)        (V, 3), the garment in the rest frame of beta
+    garment = W(unposed, J(beta), theta, W_g)                       linear blend skinning with beta's skeleton
+    post-process (their Sec. 3.1): a vertex closer to the body than eps along the normal of its body vertex is
+    pushed out to eps
+
+T is the database's rest garment (beta0), W_g its skinning weights (interpolated from the closest body triangle, as
+their Eq. 3 does); R_G and R_L are the two regressors of the database's garment_model/santesteban group (trained
+by `agentdress santesteban`, build.santesteban), evaluated with numpy: no learning library at run time. R_G runs
+once per shape. The post-process binds each garment vertex to its closest body vertex once per shape (on the
+shape's rest pose, as AgentDress Eq. 10 does) instead of searching the posed body every frame.
+"""
+from __future__ import annotations
+
+import copy
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..body.kinematics import forward_kinematics, linear_blend_skinning
+from ..garment.binding import vertex_normals
+from .database import Database
+from .kernels import prepare_pose
+from .pose_models import RegressorDecoder
+
+__all__ = ["PUSH_MARGIN", "SantestebanModel", "push_out_of_body"]
+
+#: eps of the post-process, metres (AgentDress's penetration_margin, so the two systems are compared alike).
+PUSH_MARGIN = 0.005
+N_PHENOTYPES = 6
+
+
+@numba.njit(cache=True, nogil=True)
+def push_out_of_body(garment, bound, body_rest, body_normals, skin_indices, skin_weights, transforms, margin):
+    """In place: each garment vertex (V, 3) closer than `margin` to its bound body vertex bound (V,) along that
+    vertex's normal moves out along the normal to `margin`. body_rest, body_normals (N, 3): the body's rest
+    vertices and unit normals; skin_indices/weights (N, K); transforms (B, 3, 4) of the frame. Returns the count."""
+    pushed = 0
+    for v in range(garment.shape[0]):
+        b = bound[v]
+        m = np.zeros((3, 4))
+        for k in range(skin_indices.shape[1]):
+            w = skin_weights[b, k]
+            if w != 0.0:
+                m += w * transforms[skin_indices[b, k]]
+        point = np.empty(3)
+        normal = np.empty(3)
+        for i in range(3):
+            point[i] = m[i, 0] * body_rest[b, 0] + m[i, 1] * body_rest[b, 1] + m[i, 2] * body_rest[b, 2] + m[i, 3]
+            normal[i] = m[i, 0] * body_normals[b, 0] + m[i, 1] * body_normals[b, 1] + m[i, 2] * body_normals[b, 2]
+        length = np.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+        if length < 1e-12:
+            continue
+        depth = 0.0
+        for i in range(3):
+            normal[i] /= length
+            depth += (garment[v, i] - point[i]) * normal[i]
+        if depth < margin:
+            for i in range(3):
+                garment[v, i] += (margin - depth) * normal[i]
+            pushed += 1
+    return pushed
+
+
+class SantestebanModel:
+    """Santesteban et al.'s system on a database that holds garment_model/santesteban (see the module docstring).
+    set_shape(beta (6,)) -> clamped; synthesize(rotvecs (B, 3), root (3,)) -> (V, 3) float32 in the database's
+    vertex order (an internal buffer); reset() (no frame history); clone()."""
+
+    kind = "santesteban"
+
+    def __init__(self, db: Database, body, margin: float = PUSH_MARGIN):
+        if db.santesteban is None:
+            raise ValueError("model 'santesteban' needs a database with garment_model/santesteban (train it with "
+                             "`agentdress santesteban`)")
+        self.db, self.body, self.margin = db, body, float(margin)
+        self.fit = RegressorDecoder(db.santesteban.fit)
+        self.wrinkles = RegressorDecoder(db.santesteban.wrinkles)
+        self.rest = np.asarray(db.rest, dtype=np.float64)
+        self.skin_indices = np.ascontiguousarray(db.skin_indices, dtype=np.int32)
+        self.skin_weights = np.ascontiguousarray(db.skin_weights, dtype=np.float64)
+        self.parents = np.asarray(db.parents, dtype=np.int64)
+        self.n_pose = 3 * len(self.parents)
+        ids = body.body_vertex_ids
+        self._body_ids = ids
+        self._body_skin_i = np.ascontiguousarray(body.skin_indices[ids], dtype=np.int32)
+        self._body_skin_w = np.ascontiguousarray(body.skin_weights[ids], dtype=np.float64)
+        self._allocate()
+        self.set_shape(db.beta0)
+
+    def _allocate(self):
+        self.inputs = np.zeros(self.n_pose + N_PHENOTYPES)
+        self.transforms = np.empty((len(self.parents), 3, 4))
+        self.theta = np.empty((len(self.parents), 3))
+        self.root = np.empty(3)
+        self.unposed = np.empty_like(self.rest)
+        self.out = np.empty(self.rest.shape, dtype=np.float64)
+        self.out32 = np.empty(self.rest.shape, dtype=np.float32)
+        self.pushed = 0
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.rest)
+
+    def set_shape(self, beta) -> bool:
+        """Fit to a body shape: R_G(beta), beta's skeleton, and the post-process's binding. Phenotypes outside
+        [0, 1] are clamped (returns True)."""
+        beta = np.asarray(beta, dtype=np.float64).reshape(-1)
+        if beta.shape != (N_PHENOTYPES,) or not np.isfinite(beta).all():
+            raise ValueError(f"beta must be {N_PHENOTYPES} finite phenotype values, got {beta.tolist()}")
+        shape = self.body.shape(beta)
+        self.inputs[self.n_pose:] = shape.beta
+        self.fitted = self.rest + self.fit.decode(self.inputs).T
+        self.heads = np.ascontiguousarray(shape.heads, dtype=np.float64)
+        body_rest = shape.vertices[self._body_ids]
+        normals = vertex_normals(shape.vertices, self.body.body_faces)[self._body_ids]
+        self._body_rest = np.ascontiguousarray(body_rest)
+        self._body_normals = np.ascontiguousarray(normals / np.maximum(np.linalg.norm(normals, axis=1,
+                                                                                      keepdims=True), 1e-12))
+        self._bound = cKDTree(body_rest).query(self.fitted)[1].astype(np.int64)
+        return bool(shape.clamped)
+
+    def reset(self) -> None:
+        """Nothing to forget: the model has no frame history."""
+
+    def clone(self) -> "SantestebanModel":
+        twin = copy.copy(self)
+        twin.fit, twin.wrinkles = self.fit.fork(), self.wrinkles.fork()
+        twin._allocate()
+        twin.inputs[:] = self.inputs
+        return twin
+
+    def synthesize(self, rotvecs, root_translation=None) -> np.ndarray:
+        root = np.zeros(3) if root_translation is None else np.asarray(root_translation, dtype=np.float64)
+        prepare_pose(np.asarray(rotvecs, dtype=np.float64), root, 1.0e4, self.theta, self.root)
+        self.inputs[:self.n_pose] = self.theta.reshape(-1)
+        np.add(self.fitted, self.wrinkles.decode(self.inputs).T, out=self.unposed)
+        forward_kinematics(self.theta, self.root, self.heads, self.parents, self.transforms)
+        linear_blend_skinning(self.unposed, self.skin_indices, self.skin_weights, self.transforms, self.out)
+        self.pushed = push_out_of_body(self.out, self._bound, self._body_rest, self._body_normals,
+                                       self._body_skin_i, self._body_skin_w, self.transforms, self.margin)
+        self.out32[:] = self.out
+        return self.out32
