@@ -37,9 +37,10 @@ def test_quick_eval_measures_every_row_with_finite_numbers(quick_eval):
     assert GROUPS <= {r["group"] for r in rows}
     assert [r["name"] for r in rows] == [r.name for r in trade_rows(report["database_anchors"],
                                                                       report["database_components"],
-                                                                      report["database_regressor"])]
-    assert report["database_regressor"]  # the shipped database has one: its rows are measured too
-    assert {r["group"] for r in rows} >= {"regressor"}
+                                                                      report["database_regressor"],
+                                                                      report["database_santesteban"])]
+    assert report["database_regressor"] and report["database_santesteban"]  # shipped: their rows are measured too
+    assert {r["group"] for r in rows} >= {"regressor", "santesteban"}
     neighbors = {r["config"]["neighbors"] for r in rows if r["group"] == "neighbors"}
     assert neighbors == {1, 3, 8}
     assert {r["config"]["pose_neighbors"] for r in rows if r["group"] == "pose neighbors"} == {1, 3, 8}

@@ -395,7 +395,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         "database_anchors": db.n_anchors,
         "database_vertices": db.n_vertices,
         "database_components": db.n_components,
-        "database_regressor": db.regressor is not None,
+        "database_regressor": db.regressor is not None, "database_santesteban": db.santesteban is not None,
         "test_set": {"poses": test.pose_labels, "betas": test.betas.tolist(), "shape_labels": test.shape_labels,
                      "shape_distance_from_beta0": np.linalg.norm(z, axis=1).tolist(),
                      "sequence_frames": int(len(test.sequence)),
