@@ -68,6 +68,24 @@ def test_poke_through_counts_skin_outside_the_cloth_away_from_its_edges():
     np.testing.assert_array_equal(side, [1, -1, 0, 0])
 
 
+def test_skin_of_another_body_part_outside_the_cloth_is_not_poking_through_it():
+    """A torso under its shirt panel (1 cm below it) and an arm patch 4 cm outside that panel, facing the same way:
+    the arm is outside the garment, not through it (the panel belongs to the torso, 1 cm from it). The same arm
+    5 mm outside the panel with no torso near it does poke through."""
+    torso, torso_faces = grid(41, 1.0)
+    panel, panel_faces = grid(21, 0.5, z=0.01)
+    arm, arm_faces = grid(5, 0.1, z=0.05)
+    body = np.concatenate([torso, arm])
+    faces = np.concatenate([torso_faces, arm_faces + len(torso)])
+    poking = poke_through(body, faces, panel, panel_faces, max_gap=0.06, edge_band=0.05)
+    arm_rows = np.arange(len(torso_faces), len(faces))
+    assert not poking.any()
+    before = poke_through(body, faces, panel, panel_faces, max_gap=0.06, edge_band=0.05, owner_tolerance=np.inf)
+    assert before[arm_rows].all()  # what the count said without the rule
+    near, near_faces = grid(5, 0.1, z=0.015)
+    assert poke_through(near, near_faces, panel, panel_faces, max_gap=0.06, edge_band=0.05).all()
+
+
 def test_skin_is_judged_against_the_cloth_facing_its_way_not_a_panel_it_meets_face_to_face():
     """The inner arm in an armpit: its skin (outward normal -z) lies just outside the shirt's side panel, which faces
     it (+z), and inside the sleeve's lower panel, which faces its way (-z) further off. It is under the sleeve."""

@@ -38,7 +38,8 @@ def test_quick_eval_measures_every_row_with_finite_numbers(quick_eval):
     assert [r["name"] for r in rows] == [r.name for r in trade_rows(report["database_anchors"],
                                                                       report["database_components"],
                                                                       report["database_regressor"],
-                                                                      report["database_santesteban"])]
+                                                                      report["database_santesteban"],
+                                                                      report["database_kdsm"])]
     assert report["database_regressor"] and report["database_santesteban"]  # shipped: their rows are measured too
     assert {r["group"] for r in rows} >= {"regressor", "santesteban"}
     neighbors = {r["config"]["neighbors"] for r in rows if r["group"] == "neighbors"}

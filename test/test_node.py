@@ -274,3 +274,38 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
             np.testing.assert_allclose(vertices["tshirt"], model.synthesize(rotvecs, translation), atol=1e-5)
     finally:
         assert child.stop() == 0, child.output()
+
+
+def test_node_runs_santesteban_per_garment(tmp_path, body):
+    """garment_models 'tshirt:santesteban': the T-shirt is Santesteban et al.'s system from the shipped database
+    (status kind santesteban, the cloud equals the model's), the trousers stay AgentDress synthesis."""
+    from pathlib import Path
+
+    from agentdress_ros.ros.garment_models import make_garment_model
+
+    data = Path(__file__).resolve().parents[1] / "data"
+    domain = DOMAIN_ID + 5
+    params = {"garments": ["tshirt", "trousers"], "display_subdivision": 0, "status_rate_hz": 4.0,
+              "garment_databases": [f"tshirt:{data / 'tshirt_default.h5'}", f"trousers:{data / 'trousers_default.h5'}"],
+              "garment_models": ["tshirt:santesteban"], "garment_layers": ["trousers:2"]}  # equal layers: no push
+    child = ChildProcess(node_args(params), ros_env(domain, str(tmp_path / "log")), tmp_path / "node.log")
+    try:
+        assert child.wait_for_output("garment models ready", timeout=90.0), child.output()
+        model = make_garment_model("tshirt", data / "tshirt_default.h5", None, body, START_SHAPE, model="santesteban")
+        with ros_node("agentdress_santesteban_client", domain) as (node, executor):
+            state = {"clouds": {"tshirt": [], "trousers": []}, "status": []}
+            for g in ("tshirt", "trousers"):
+                node.create_subscription(PointCloud2, f"/agentdress_node/{g}/points",
+                                         lambda m, g=g: state["clouds"][g].append(m), BEST_EFFORT)
+            node.create_subscription(String, "/agentdress_node/status",
+                                     lambda m: state["status"].append(json.loads(m.data)), 10)
+            joints = node.create_publisher(JointState, "joint_states", 10)
+            assert spin_until(executor, lambda: joints.get_subscription_count() > 0 and state["status"], 30.0)
+            kinds = {g: state["status"][-1]["garments"][g]["kind"] for g in ("tshirt", "trousers")}
+            assert kinds == {"tshirt": "santesteban", "trousers": "database"}
+            motion = make_motion("walk", fps=30.0)
+            rotvecs, translation = motion.rotvecs[12], motion.root_translation[12]
+            vertices, _ = publish_pose_until_answered((node, executor, joints, None, state), rotvecs, translation)
+            np.testing.assert_allclose(vertices["tshirt"], model.synthesize(rotvecs, translation), atol=1e-5)
+    finally:
+        assert child.stop() == 0, child.output()

@@ -159,3 +159,23 @@ def test_command_trains_into_the_database_and_no_learning_library_at_run_time(tm
     check = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert check.returncode == 0, check.stderr[-2000:]
     assert check.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_parameters_select_the_model_per_garment_and_refuse_what_cannot_run():
+    from agentdress_ros.ros.params import ParameterError, check_garment_config, validate
+
+    assert validate("garment_models", ["tshirt:santesteban"]) == {"tshirt": "santesteban"}
+    with pytest.raises(ParameterError, match="garment_models: tshirt: 'physics' must be one of agentdress, "
+                                             "santesteban"):
+        validate("garment_models", ["tshirt:physics"])
+    with pytest.raises(ParameterError, match="needs a database in garment_databases"):
+        check_garment_config(["tshirt"], {}, ("tshirt",), {"tshirt": "santesteban"})
+    check_garment_config(["tshirt"], {"tshirt": "x.h5"}, ("tshirt",), {"tshirt": "santesteban"})
+
+
+def test_a_database_without_the_group_names_the_file(tmp_path, body, database):
+    from agentdress_ros.ros.garment_models import GarmentDatabaseError, make_garment_model
+
+    path = write_database(tmp_path / "plain.h5", replace(database, santesteban=None))
+    with pytest.raises(GarmentDatabaseError, match=f"{path}.*garment_model/santesteban.*agentdress santesteban"):
+        make_garment_model("tshirt", path, body=body, model="santesteban")

@@ -62,6 +62,8 @@ def garment_rest(model, body) -> np.ndarray:
     """The garment (V, 3) of a model at rest on the reference shape: a database's skinning rest, or the template
     fitted by its binding."""
     base = _base(model)
+    if getattr(base, "kind", "") == "santesteban":
+        return np.asarray(base.rest, dtype=np.float64)
     engine = getattr(base, "engine", None)
     if engine is not None:
         rest = np.empty(engine.db.rest.shape, dtype=np.float64)

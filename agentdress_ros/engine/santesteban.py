@@ -38,28 +38,32 @@ def push_out_of_body(garment, bound, body_rest, body_normals, skin_indices, skin
     vertex's normal moves out along the normal to `margin`. body_rest, body_normals (N, 3): the body's rest
     vertices and unit normals; skin_indices/weights (N, K); transforms (B, 3, 4) of the frame. Returns the count."""
     pushed = 0
+    m = np.empty((3, 4))  # the body vertex's blended transform, reused (no allocation per vertex)
     for v in range(garment.shape[0]):
         b = bound[v]
-        m = np.zeros((3, 4))
+        m[:] = 0.0
         for k in range(skin_indices.shape[1]):
             w = skin_weights[b, k]
             if w != 0.0:
-                m += w * transforms[skin_indices[b, k]]
-        point = np.empty(3)
-        normal = np.empty(3)
-        for i in range(3):
-            point[i] = m[i, 0] * body_rest[b, 0] + m[i, 1] * body_rest[b, 1] + m[i, 2] * body_rest[b, 2] + m[i, 3]
-            normal[i] = m[i, 0] * body_normals[b, 0] + m[i, 1] * body_normals[b, 1] + m[i, 2] * body_normals[b, 2]
-        length = np.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+                t = transforms[skin_indices[b, k]]
+                for i in range(3):
+                    for j in range(4):
+                        m[i, j] += w * t[i, j]
+        nx = m[0, 0] * body_normals[b, 0] + m[0, 1] * body_normals[b, 1] + m[0, 2] * body_normals[b, 2]
+        ny = m[1, 0] * body_normals[b, 0] + m[1, 1] * body_normals[b, 1] + m[1, 2] * body_normals[b, 2]
+        nz = m[2, 0] * body_normals[b, 0] + m[2, 1] * body_normals[b, 1] + m[2, 2] * body_normals[b, 2]
+        length = np.sqrt(nx * nx + ny * ny + nz * nz)
         if length < 1e-12:
             continue
-        depth = 0.0
-        for i in range(3):
-            normal[i] /= length
-            depth += (garment[v, i] - point[i]) * normal[i]
+        nx, ny, nz = nx / length, ny / length, nz / length
+        px = m[0, 0] * body_rest[b, 0] + m[0, 1] * body_rest[b, 1] + m[0, 2] * body_rest[b, 2] + m[0, 3]
+        py = m[1, 0] * body_rest[b, 0] + m[1, 1] * body_rest[b, 1] + m[1, 2] * body_rest[b, 2] + m[1, 3]
+        pz = m[2, 0] * body_rest[b, 0] + m[2, 1] * body_rest[b, 1] + m[2, 2] * body_rest[b, 2] + m[2, 3]
+        depth = (garment[v, 0] - px) * nx + (garment[v, 1] - py) * ny + (garment[v, 2] - pz) * nz
         if depth < margin:
-            for i in range(3):
-                garment[v, i] += (margin - depth) * normal[i]
+            garment[v, 0] += (margin - depth) * nx
+            garment[v, 1] += (margin - depth) * ny
+            garment[v, 2] += (margin - depth) * nz
             pushed += 1
     return pushed
 

@@ -34,13 +34,15 @@ class Row:
     results: dict = field(default_factory=dict)
 
 
-def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, santesteban: bool = False) -> list[Row]:
+def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, santesteban: bool = False,
+               kdsm: bool = False) -> list[Row]:
     """The rows of the trade table (the anchors' K and the examples pose model's K in {1, 3, 5, 8}, components in
     {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep: N
     anchors restrict both the shape models and the pose model's examples to those anchors (their beta0 drapes),
     the pose model's K staying 5 (capped at N). With `regressor` (the database has one), the learned pose model
     alone and in synthesis, with and without its anchor residuals folded into the shape deltas. With `santesteban`
-    (the database has garment_model/santesteban), Santesteban et al.'s own system (engine.santesteban)."""
+    (the database has garment_model/santesteban), Santesteban et al.'s own system (engine.santesteban). With `kdsm`
+    (pose_model/kdsm), the `kdsm` pose model alone and in synthesis."""
     # sweeps around the node's default (the examples pose model, the most accurate measured)
     base = {"pose_model": "examples"}
     rows = [
@@ -81,6 +83,12 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
             Row("synthesis with the regressor pose model, no fold", "regressor",
                 {"pose_model": "regressor", "fold": False}),
         ]
+    if kdsm:
+        rows += [
+            Row("kdsm pose model alone (beta0 garment, no shape model)", "kdsm",
+                {"pose_model": "kdsm", "shape_model": False}),
+            Row("synthesis with the kdsm pose model", "kdsm", {"pose_model": "kdsm"}),
+        ]
     if santesteban:
         rows.append(Row("Santesteban et al. 2019 system (fit and wrinkle regressors, own skinning, push-out "
                         "post-process; no AgentDress synthesis)", "santesteban", {"model": "santesteban"}))
@@ -92,7 +100,9 @@ BETA0_ROWS = (("lbs pose model alone", {"shape_model": False}),
               ("examples pose model alone", {"shape_model": False, "pose_model": "examples"}),
               ("regressor pose model alone", {"shape_model": False, "pose_model": "regressor"}),
               ("synthesis, examples pose model (node default)", {"pose_model": "examples"}),
-              ("synthesis, regressor pose model (fold)", {"pose_model": "regressor"}))
+              ("synthesis, regressor pose model (fold)", {"pose_model": "regressor"}),
+              ("kdsm pose model alone", {"shape_model": False, "pose_model": "kdsm"}),
+              ("synthesis, kdsm pose model", {"pose_model": "kdsm"}))
 
 
 def beta0_report(db, body, poses, drapes) -> list[dict]:
@@ -102,7 +112,8 @@ def beta0_report(db, body, poses, drapes) -> list[dict]:
 
     rows, cases = [], []
     for name, config in BETA0_ROWS:
-        if config.get("pose_model") == "regressor" and db.regressor is None:
+        if (config.get("pose_model") == "regressor" and db.regressor is None
+                or config.get("pose_model") == "kdsm" and db.kdsm_model is None):
             continue
         engine = Engine(db, body, EngineConfig(**config))
         errors = []
@@ -356,7 +367,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
                                   for p in range(len(test.poses)) for k in range(len(test.betas))]))
 
     rows = trade_rows(db.n_anchors, db.n_components, regressor=db.regressor is not None,
-                      santesteban=db.santesteban is not None)
+                      santesteban=db.santesteban is not None, kdsm=db.kdsm_model is not None)
     repeats = 1 if quick else 3
     from tqdm import tqdm
 
@@ -396,6 +407,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         "database_vertices": db.n_vertices,
         "database_components": db.n_components,
         "database_regressor": db.regressor is not None, "database_santesteban": db.santesteban is not None,
+        "database_kdsm": db.kdsm_model is not None,
         "test_set": {"poses": test.pose_labels, "betas": test.betas.tolist(), "shape_labels": test.shape_labels,
                      "shape_distance_from_beta0": np.linalg.norm(z, axis=1).tolist(),
                      "sequence_frames": int(len(test.sequence)),

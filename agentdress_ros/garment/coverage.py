@@ -25,6 +25,9 @@ MAX_GAP = 0.06
 #: Body vertices in that band sink up to this far under the cloth (at rest, so it costs nothing per frame).
 TUCK = 0.015
 NO_EDGE = 1e9
+#: poke_through: a cloth point this much closer to another part of the body than to the face judged against it
+#: belongs to that part.
+OWNER_TOLERANCE = 0.01
 
 __all__ = ["MARGIN", "MAX_GAP", "TUCK", "boundary_distance", "cover_depth", "covered_faces", "covered_vertices",
            "faces_with_vertices", "garment_covered_faces", "poke_through", "surface_side", "tuck_depth"]
@@ -134,7 +137,7 @@ def garment_covered_faces(garment, body, shape=None, margin: float = MARGIN, max
 
 
 def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: float = MARGIN,
-                 directions=None, edges=None) -> np.ndarray:
+                 directions=None, edges=None, return_closest: bool = False):
     """(P,) int8 side of each point (P, 3) relative to an open surface (V, 3), (G, 3) whose normals face outwards:
     +1 outside, -1 inside, 0 where the surface does not cover the point - its closest surface point is further than
     max_gap, or within edge_band (geodesically) of an open edge: the band kept drawn under hems and cuffs.
@@ -143,7 +146,8 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
     closest part of the surface facing its way (positive dot product of the normals): the surface that lies over
     it, not a panel it meets face to face (the inner arm against a shirt's side in the armpit lies outside the side
     panel and inside its sleeve). edges (V,): the surface's boundary_distance, if known (it changes little with
-    the pose)."""
+    the pose). With return_closest: (sides, closest (P, 3): the surface point each was judged against, NaN where
+    none)."""
     points = np.asarray(points, dtype=np.float64)
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
@@ -174,15 +178,33 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
                 edge_distance[k] = edges[faces[candidates[best]]] @ (weights / weights.sum())
     side = np.where(((points[ids] - closest) * normals[face_ids]).sum(axis=1) > 0, 1, -1)
     out[ids] = np.where((distance <= max_gap) & (edge_distance >= edge_band), side, 0)
+    if return_closest:
+        judged = np.full((len(points), 3), np.nan)
+        judged[ids] = closest
+        return out, judged
     return out
 
 
 def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max_gap: float = MAX_GAP,
-                 edge_band: float = MARGIN) -> np.ndarray:
+                 edge_band: float = MARGIN, owner_tolerance: float = OWNER_TOLERANCE) -> np.ndarray:
     """(F,) bool: body triangles (F, 3) whose centre lies outside the garment's surface where the garment covers it
     (surface_side, judged against the cloth facing the skin's way). The check behind "no skin through the cloth",
-    on posed meshes of any frame."""
+    on posed meshes of any frame.
+
+    The cloth a face is judged against must lie on that face's part of the body: where another part of the body
+    (body_vertices (N, 3), all of them) is closer to that cloth point than the face's centre is, by more than
+    owner_tolerance, the face is skin outside the garment, not skin through it - an arm hanging beside the torso,
+    below a short sleeve and 5 cm outside the shirt's side panel, which faces the same way."""
     body_vertices = np.asarray(body_vertices, dtype=np.float64)
     corners = body_vertices[body_faces]
+    centres = corners.mean(axis=1)
     directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    return surface_side(corners.mean(axis=1), garment_vertices, garment_faces, max_gap, edge_band, directions) > 0
+    sides, closest = surface_side(centres, garment_vertices, garment_faces, max_gap, edge_band, directions,
+                                  return_closest=True)
+    poking = sides > 0
+    ids = np.flatnonzero(poking)
+    if len(ids):
+        to_face = np.linalg.norm(closest[ids] - centres[ids], axis=1)
+        to_body, _ = cKDTree(body_vertices).query(closest[ids])
+        poking[ids[to_body < to_face - owner_tolerance]] = False
+    return poking

@@ -222,18 +222,13 @@ class EngineGarmentModel:
 def _load_engine_model(name: str, path: Path, body: AnnyBody, beta, engine_config=None) -> EngineGarmentModel:
     """Import the engine lazily (the skinned path never needs it) and build a model from the database file."""
     try:
-        from ..engine import Engine, EngineConfig, read_database
+        from ..engine import Engine, EngineConfig
     except (ImportError, AttributeError) as error:
         raise GarmentDatabaseError(
             f"garment {name!r}: cannot use database {path}: agentdress_ros.engine is not usable ({error}); "
             "set skinned_fallback: true to dress it with the skinned template instead"
         ) from None
-    try:
-        db = read_database(path)  # DatabaseError names the file and the field
-    except Exception as error:
-        text = str(error)
-        raise GarmentDatabaseError(f"garment {name!r}: {text}" if str(path) in text
-                                   else f"garment {name!r}: database {path}: {text}") from None
+    db = _read_database(name, path)
     try:
         engine = Engine(db, body, engine_config if engine_config is not None else EngineConfig())
     except Exception as error:
@@ -243,9 +238,64 @@ def _load_engine_model(name: str, path: Path, body: AnnyBody, beta, engine_confi
     return model
 
 
+class SantestebanGarmentModel:
+    """Santesteban et al.'s system (`agentdress_ros.engine.santesteban`) behind the protocol; `clone()` gives a
+    twin with buffers of its own whose set_shape leaves the original alone."""
+
+    kind = "santesteban"
+
+    def __init__(self, name: str, model, faces, path: Path):
+        self.name, self.model, self.path = name, model, path
+        self.faces = np.ascontiguousarray(faces, dtype=np.int32)
+        self.rest = model.rest  # (V, 3) the database's rest garment (display: garment_rest)
+
+    @property
+    def n_vertices(self) -> int:
+        return self.model.n_vertices
+
+    def set_shape(self, beta) -> bool:
+        return self.model.set_shape(beta)
+
+    def synthesize(self, rotvecs, root_translation) -> np.ndarray:
+        return self.model.synthesize(rotvecs, root_translation)
+
+    def reset(self) -> None:
+        self.model.reset()
+
+    def clone(self):
+        twin = copy.copy(self)
+        twin.model = self.model.clone()
+        return twin
+
+
+def _read_database(name: str, path: Path):
+    """The database at `path`, a failure raised as GarmentDatabaseError naming the garment and the file."""
+    from ..engine import read_database
+
+    try:
+        return read_database(path)  # DatabaseError names the file and the field
+    except Exception as error:
+        text = str(error)
+        raise GarmentDatabaseError(f"garment {name!r}: {text}" if str(path) in text
+                                   else f"garment {name!r}: database {path}: {text}") from None
+
+
+def _load_santesteban_model(name: str, path: Path, body: AnnyBody, beta) -> SantestebanGarmentModel:
+    from ..engine.santesteban import SantestebanModel
+
+    db = _read_database(name, path)
+    if db.santesteban is None:
+        raise GarmentDatabaseError(f"garment {name!r}: database {path} has no garment_model/santesteban group "
+                                   "(model santesteban): train it with `agentdress santesteban`")
+    model = SantestebanGarmentModel(name, SantestebanModel(db, body), db.faces, path)
+    model.set_shape(beta)
+    return model
+
+
 def make_garment_model(name: str, database_path=None, vertices: int | None = None, body: AnnyBody | None = None,
-                       beta=REFERENCE_SHAPE, engine_config=None) -> GarmentModel:
-    """The model for garment `name`: the AgentDress engine on `database_path` if given, else the skinned template
+                       beta=REFERENCE_SHAPE, engine_config=None, model: str = "agentdress") -> GarmentModel:
+    """The model for garment `name`: the AgentDress engine on `database_path` if given (or with model
+    "santesteban", Santesteban et al.'s system from the same file), else the skinned template
     with about `vertices` vertices (None: the template's default). A database fixes its own vertex count; its level
     of detail is the engine's (`EngineConfig.vertices`, passed as `engine_config`), so `vertices` applies to
     skinned templates only.
@@ -258,6 +308,8 @@ def make_garment_model(name: str, database_path=None, vertices: int | None = Non
         path = Path(database_path).expanduser()
         if not path.is_file():
             raise GarmentDatabaseError(f"garment {name!r}: database file {path.resolve()} does not exist")
+        if model == "santesteban":
+            return _load_santesteban_model(name, path, body, beta)
         return _load_engine_model(name, path, body, beta, engine_config)
     from ..garment import TEMPLATES, make_garment
 

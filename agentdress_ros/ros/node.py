@@ -53,7 +53,8 @@ from .garment_models import GarmentDatabaseError, skin_binding
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .messages import (SerializedBones, make_marker, make_mesh, make_point_cloud, make_skin, set_cloud_vertices,
                        stamp_from_ns)
-from .params import PARAMETERS, ParameterError, check_garment_config, database_file_problem, validate
+from .params import (GARMENT_MODELS, PARAMETERS, ParameterError, check_garment_config, database_file_problem,
+                     validate)
 from .runtime import (GarmentSpec, ModelSet, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set,
                       scene_key)
 from .spin import spin_until_shutdown
@@ -62,7 +63,8 @@ NODE_NAME = "agentdress_node"
 TOPOLOGY_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Parameters that shape the model set: a rebuild that fails rolls them back to the values of the running set.
-SCENE_PARAMETERS = ("garments", "garment_vertices", "garment_databases", "engine", "publish_body", "skinned_fallback")
+SCENE_PARAMETERS = ("garments", "garment_vertices", "garment_databases", "garment_models", "engine", "publish_body",
+                    "skinned_fallback")
 MARKER_COLORS = ((0.2, 0.45, 0.85, 1.0), (0.25, 0.25, 0.3, 1.0), (0.85, 0.4, 0.2, 1.0), (0.9, 0.75, 0.6, 1.0))
 
 
@@ -178,7 +180,8 @@ class AgentDressNode(Node):
             except ParameterError as error:
                 raise ConfigError(f"parameter {error}" if not str(error).startswith(name) else str(error)) from None
         try:
-            check_garment_config(config["garments"], config["garment_databases"], TEMPLATES)
+            check_garment_config(config["garments"], config["garment_databases"], TEMPLATES, config["garment_models"])
+            _check_crowd_models(config)
         except ParameterError as error:
             raise ConfigError(str(error)) from None
         return config
@@ -186,7 +189,8 @@ class AgentDressNode(Node):
     def _scene(self, config=None, beta=None) -> SceneSpec:
         config = config or self.config
         garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g),
-                                     config["engine"]) for g in config["garments"])
+                                     config["engine"], config["garment_models"].get(g, GARMENT_MODELS[0]))
+                         for g in config["garments"])
         if beta is None:
             beta = check_shape_values(config["shape"]).beta
         return SceneSpec(garments, config["publish_body"], tuple(float(b) for b in beta), config["skinned_fallback"],
@@ -202,7 +206,8 @@ class AgentDressNode(Node):
                 if not PARAMETERS[p.name].runtime:
                     raise ParameterError(f"{p.name} is read at startup only: restart the node to change it")
                 config[p.name] = validate(p.name, p.value)
-            check_garment_config(config["garments"], config["garment_databases"], TEMPLATES)
+            check_garment_config(config["garments"], config["garment_databases"], TEMPLATES, config["garment_models"])
+            _check_crowd_models(config)
             if bool(config["agents"]) != bool(self.config["agents"]):
                 raise ParameterError("agents: switching between one agent (empty list) and a crowd needs a restart "
                                      "of the node")
@@ -623,6 +628,13 @@ class AgentDressNode(Node):
         else:
             self.worker.stop()
         return super().destroy_node()
+
+
+def _check_crowd_models(config: dict) -> None:
+    """A crowd's agents run AgentDress synthesis (their levels of detail are engine forks): no other model."""
+    if config["agents"] and any(m != GARMENT_MODELS[0] for m in config["garment_models"].values()):
+        raise ParameterError(f"garment_models: a crowd (agents) runs AgentDress synthesis only; "
+                             f"{config['garment_models']} needs a single-agent node")
 
 
 def set_realtime_priority(priority: int, logger) -> bool:

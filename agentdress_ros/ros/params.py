@@ -54,6 +54,10 @@ PARAMETERS: dict[str, Spec] = {
     "garments": Spec(["tshirt"], "garments to dress the agent in (templates tshirt, longsleeve, trousers)"),
     "garment_vertices": Spec([], "per-garment vertex budget 'name:count' of skinned templates (level of detail)"),
     "garment_databases": Spec([], "per-garment AgentDress database 'name:path.h5' (relative to the working dir)"),
+    "garment_models": Spec([], "per-garment model of a garment with a database, 'name:model': agentdress (synthesis, "
+                               "the default) or santesteban (Santesteban et al. 2019, from the database's "
+                               "garment_model/santesteban group; one agent only, README 'Santesteban et al.'s "
+                               "system')"),
     "engine": Spec(["pose_model=examples"], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
                        "examples, regressor), fold, neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
                        "(float32, float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
@@ -134,6 +138,9 @@ def parse_garment_map(name: str, value) -> dict[str, str]:
 
 
 # EngineConfig fields settable from a parameter, with their coercion (the rest are library-only).
+#: The models a garment with a database can run (garment_models): AgentDress synthesis first (the default).
+GARMENT_MODELS = ("agentdress", "santesteban")
+
 _ENGINE_FIELDS = {
     "pose_model": str, "taylor": str, "dtype": str,
     "neighbors": int, "pose_neighbors": int, "components": int, "anchors": int,
@@ -267,6 +274,12 @@ def validate(name: str, value):
         return budgets
     if name == "garment_databases":
         return parse_garment_map(name, value)
+    if name == "garment_models":
+        models = parse_garment_map(name, value)
+        for key, item in models.items():
+            if item not in GARMENT_MODELS:
+                raise ParameterError(f"garment_models: {key}: {item!r} must be one of {', '.join(GARMENT_MODELS)}")
+        return models
     if name == "display_subdivision":
         if isinstance(value, bool) or value not in (0, 1, 2):
             raise ParameterError(f"display_subdivision must be 0, 1 or 2, got {value!r}")
@@ -304,14 +317,18 @@ def validate(name: str, value):
     raise ParameterError(f"unknown parameter {name!r}")
 
 
-def check_garment_config(garments, databases: dict, known_garments) -> None:
-    """Cross-parameter check: every garment is a known template or has a database. Entries of the per-garment maps
-    for garments not listed are kept (they apply once the garment is listed). Missing database files are not checked
-    here (startup names the file and exits; see make_garment_model)."""
+def check_garment_config(garments, databases: dict, known_garments, models: dict | None = None) -> None:
+    """Cross-parameter check: every garment is a known template or has a database, and a garment whose model is not
+    the default has a database. Entries of the per-garment maps for garments not listed are kept (they apply once
+    the garment is listed). Missing database files are not checked here (startup names the file and exits; see
+    make_garment_model)."""
     for g in garments:
         if g not in known_garments and g not in databases:
             raise ParameterError(f"garments: {g!r} is neither a template ({', '.join(known_garments)}) nor has a "
                                  "database in garment_databases")
+        model = (models or {}).get(g, GARMENT_MODELS[0])
+        if model != GARMENT_MODELS[0] and g not in databases:
+            raise ParameterError(f"garment_models: {g!r} runs {model!r}, which needs a database in garment_databases")
 
 
 def database_file_problem(path: str) -> str:

@@ -31,6 +31,7 @@ class GarmentSpec:
     vertices: int | None = None
     database: str | None = None
     engine: tuple = ()  # EngineConfig overrides ((field, value), ...) for a garment with a database
+    model: str = "agentdress"  # or "santesteban" (params.GARMENT_MODELS), for a garment with a database
 
 
 @dataclass(frozen=True)
@@ -71,7 +72,7 @@ def _build_garment(spec: GarmentSpec, body, beta, skinned_fallback: bool, warnin
             from ..engine.config import EngineConfig
 
             engine_config = EngineConfig(**dict(spec.engine))
-        return make_garment_model(spec.name, spec.database, spec.vertices, body, beta, engine_config)
+        return make_garment_model(spec.name, spec.database, spec.vertices, body, beta, engine_config, spec.model)
     except GarmentDatabaseError as error:
         if not skinned_fallback:
             raise
