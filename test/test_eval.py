@@ -81,9 +81,13 @@ def test_quick_eval_writes_table_json_and_plots(quick_eval):
     body = [line for line in table if line.startswith("| ") and not line.startswith("| # |")
             and not line.startswith("| extreme") and not line.startswith("| configuration")]
     temporal_rows = sum(len(entry["rows"]) for entry in report["temporal"])
-    assert len(body) == len(report["rows"]) + len(report["stability"]) + temporal_rows
-    for name in ("pareto.png", "anchors.png", "shape_distance.png"):
+    # the trade table, the by-part table (a row each), stability, temporal
+    assert len(body) == 2 * len(report["rows"]) + len(report["stability"]) + temporal_rows
+    for name in ("pareto.png", "anchors.png", "shape_distance.png", "vertex_error.png"):
         assert (out / name).stat().st_size > 10_000
+    parts = report["rows"][0]["error_by_part_cm"]
+    assert {"torso", "sleeves", "hem", "top edge"} <= set(parts) and all(np.isfinite(v) for v in parts.values())
+    assert all("vertex_error_cm" not in r for r in report["rows"])  # pictured, not reported
 
 
 def test_stability_cases_stay_finite_and_near_the_skinned_garment(quick_eval):

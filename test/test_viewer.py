@@ -495,6 +495,50 @@ def test_walk_gif(browser, tmp_path):
     assert changed.mean() > 0.003  # the agent walks
 
 
+@pytest.mark.skipif(not os.environ.get("AGENTDRESS_PICTURES"), reason="set AGENTDRESS_PICTURES=<folder> to take "
+                                                                      "the README's pictures")
+def test_crowd_gif(browser, tmp_path):
+    """The README's crowd GIF: one node dressing six agents of the crowd demo (CMU clips and procedural motions,
+    their own shapes, walking about an 8 m plaza; T-shirt, trousers and body each), screenshots of the page taken
+    as fast as software drawing allows, each shown for the time it took (the loop plays at real speed)."""
+    folder = Path(os.environ["AGENTDRESS_PICTURES"])
+    folder.mkdir(parents=True, exist_ok=True)
+    agents = [f"agent_{i:03d}" for i in range(6)]
+    env = ros_env(DOMAIN_ID + 11, str(tmp_path / "ros_log"))
+    databases = [f"{g}:{ROOT / 'data' / f'{g}_default.h5'}" for g in ("tshirt", "trousers")]
+    children = {
+        "node": ChildProcess(node_args({"garments": ["tshirt", "trousers"], "garment_databases": databases,
+                                        "publish_body": True, "agents": agents}), env, tmp_path / "node.log"),
+        "demo": ChildProcess([sys.executable, "-m", "agentdress_ros.ros.crowd_demo", "--agents", str(len(agents)),
+                              "--plaza", "8", "--rate", "30"], env, tmp_path / "demo.log"),
+        "viewer": ChildProcess([sys.executable, "-m", "agentdress_ros.ros.viewer", "--port", "0", "--cert-dir",
+                                str(tmp_path / "tls")], env, tmp_path / "viewer.log"),
+    }
+    shots, times = [], []
+    try:
+        url = _viewer_url(children["viewer"])
+        _wait_for_meshes(url, ("body", "tshirt", "trousers"), children, 180.0,
+                         {f"agentdress_node/{a}" for a in agents})
+        context = browser.new_context(ignore_https_errors=True, viewport={"width": 800, "height": 500})
+        page = context.new_page()
+        page.goto(url)
+        page.wait_for_function(f"Object.keys(agentdress.meshes).length >= {3 * len(agents)}", timeout=120_000)
+        page.evaluate("document.getElementById('panel').style.display = 'none'")
+        page.wait_for_timeout(3000)
+        for _ in range(24):
+            times.append(time.monotonic())
+            shots.append(Image.open(io.BytesIO(page.screenshot(timeout=180_000))).convert("RGB"))
+        context.close()
+    finally:
+        codes = {name: child.stop() for name, child in children.items()}
+    assert all(code == 0 for code in codes.values()), {n: (c, children[n].output()[-2000:]) for n, c in codes.items()}
+    gif = folder / "crowd.gif"
+    _write_gif(gif, shots, 1000 * float(np.mean(np.diff(times))), width=480)
+    assert 0 < gif.stat().st_size < 3_000_000 and Image.open(gif).n_frames == len(shots)
+    changed = (np.abs(np.asarray(shots[0], np.int16) - np.asarray(shots[-1], np.int16)).sum(axis=2) > 30)
+    assert changed.mean() > 0.003  # the crowd walks
+
+
 def _write_gif(path: Path, shots: list, frame_ms: float, width: int = 400):
     """An animated GIF of screenshots, each shown frame_ms, scaled to `width` pixels, on one 64-colour palette."""
     size = (width, round(shots[0].height * width / shots[0].width))

@@ -177,9 +177,37 @@ class InsideTest:
         return float(np.mean(side < 0.0))
 
 
-def accuracy(model, test, inside_tests) -> dict:
+#: Garment parts the errors are reported by (vertex_parts): the skinning regions merged left with right, and the
+#: torso's vertices within EDGE_BAND of an open edge split off by height.
+EDGE_BAND = 0.04
+
+
+def vertex_parts(db) -> tuple[list, np.ndarray]:
+    """(part names, (V,) index of each vertex's part): its dominant skinning region with left and right merged
+    (sleeves, legs), the torso's vertices within EDGE_BAND (geodesic) of an open edge below the garment's middle
+    height as "hem", above it as "top edge" (neckline, waistband)."""
+    from ..garment.coverage import boundary_distance
+
+    merged = []
+    for name in db.region_names:
+        part = name.replace("left_", "").replace("right_", "")
+        merged.append({"upper_arm": "sleeves", "forearm": "sleeves", "leg": "legs"}.get(part, part))
+    names = list(dict.fromkeys(merged)) + ["hem", "top edge"]
+    labels = np.array([names.index(merged[r]) for r in np.argmax(db.regions, axis=1)])
+    rest = np.asarray(db.rest, dtype=np.float64)
+    near_edge = (boundary_distance(rest, db.faces) <= EDGE_BAND) & (labels == names.index("torso"))
+    middle = 0.5 * (rest[:, 2].min() + rest[:, 2].max())
+    labels[near_edge & (rest[:, 2] < middle)] = names.index("hem")
+    labels[near_edge & (rest[:, 2] >= middle)] = names.index("top edge")
+    used = [i for i in range(len(names)) if (labels == i).any()]
+    return [names[i] for i in used], np.searchsorted(used, labels)
+
+
+def accuracy(model, test, inside_tests, parts=None) -> dict:
     """Errors of a model on every (pose, shape) of the test set: cm mean / p95, inside fraction, per shape, and
-    the mean of each case (shape-major: case k * poses + p), which the bootstrap resamples."""
+    the mean of each case (shape-major: case k * poses + p), which the bootstrap resamples; with parts
+    (vertex_parts), the mean by part and the mean of each vertex over the cases ("vertex_error_cm", for the error
+    pictures: dropped from the report)."""
     errors, inside, per_shape = [], [], []
     for k, beta in enumerate(test.betas):
         model.set_shape(beta)
@@ -193,9 +221,15 @@ def accuracy(model, test, inside_tests) -> dict:
             inside.append(inside_tests[p][k].fraction(out))
         per_shape.append(float(np.mean(shape_errors) * 100.0))
     cases = [float(e.mean() * 100.0) for e in errors]
+    per_vertex = np.mean(errors, axis=0) * 100.0
     errors = np.concatenate(errors)
-    return {"error_mean_cm": float(errors.mean() * 100.0), "error_p95_cm": float(np.percentile(errors, 95) * 100.0),
-            "inside_fraction": float(np.mean(inside)), "error_per_shape_cm": per_shape, "error_per_case_cm": cases}
+    out = {"error_mean_cm": float(errors.mean() * 100.0), "error_p95_cm": float(np.percentile(errors, 95) * 100.0),
+           "inside_fraction": float(np.mean(inside)), "error_per_shape_cm": per_shape, "error_per_case_cm": cases}
+    if parts is not None:
+        names, labels = parts
+        out["error_by_part_cm"] = {n: float(per_vertex[labels == i].mean()) for i, n in enumerate(names)}
+        out["vertex_error_cm"] = per_vertex
+    return out
 
 
 def bootstrap_intervals(case_errors, draws: int = BOOTSTRAP_DRAWS, seed: int = 0, reference: int | None = None):
@@ -373,9 +407,10 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
 
     with threadpool_limits(limits=1):
         models = []
+        parts = vertex_parts(db)
         for row in tqdm(rows, desc="configurations", disable=not progress):
             models.append(_model(row, db, body, garment))
-            row.results = accuracy(models[-1], test, inside_tests)
+            row.results = accuracy(models[-1], test, inside_tests, parts)
         for row, timing in zip(rows, speed_and_jitter(models, test, test.betas[0], repeats=repeats)):
             row.results.update(timing)
         stability = stability_report(db, body, garment)
@@ -400,6 +435,9 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
                                       else "worse" if interval[0] > intervals[0][1] else "indistinguishable")
         row.results["error_vs_baseline"] = row.results["error_mean_cm"] / baseline["error_mean_cm"]
     best = int(np.argmin([r.results["error_mean_cm"] for r in rows]))
+    vertex_errors = {rows[i].name: rows[i].results["vertex_error_cm"] for i in (0, best)}
+    for row in rows:
+        row.results.pop("vertex_error_cm")
     z = (test.betas - np.asarray(db.beta0)) / np.asarray(db.beta_scale)
     report = {
         "database": str(db_path),
@@ -438,7 +476,40 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
     (out_dir / "trade.md").write_text(trade_markdown(report))
     write_plots(report, out_dir)
+    write_error_picture(db, vertex_errors, out_dir / "vertex_error.png")
     return report
+
+
+def write_error_picture(db, vertex_errors: dict, path: Path) -> Path:
+    """Each row's mean error per vertex (cm) on the garment at rest, front and back (faces turned away culled), one
+    colour scale for all: {row name: (V,)} -> PNG."""
+    import textwrap
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.tri import Triangulation
+
+    rest = np.asarray(db.rest, dtype=np.float64)
+    faces = np.asarray(db.faces)
+    corners = rest[faces]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    top = max(float(np.percentile(e, 99)) for e in vertex_errors.values())
+    fig, axes = plt.subplots(len(vertex_errors), 2, figsize=(8, 4.2 * len(vertex_errors)), squeeze=False)
+    for row_axes, (name, errors) in zip(axes, vertex_errors.items()):
+        for ax, (view, sign) in zip(row_axes, (("front", -1.0), ("back", 1.0))):
+            facing = sign * normals[:, 1] > 0  # the body faces -y: the front view looks along +y
+            x = rest[:, 0] if sign < 0 else -rest[:, 0]
+            shown = ax.tripcolor(Triangulation(x, rest[:, 2], faces[facing]), errors, shading="gouraud",
+                                 cmap="magma", vmin=0.0, vmax=top)
+            ax.set_title(textwrap.fill(f"{view}: {name}", 44) + f"\nmean {errors.mean():.2f} cm", fontsize=7)
+            ax.set_aspect("equal")
+            ax.axis("off")
+    fig.colorbar(shown, ax=axes, shrink=0.6, label="mean vertex error over the held-out set (cm)")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def trade_markdown(report: dict) -> str:
@@ -450,6 +521,15 @@ def trade_markdown(report: dict) -> str:
         lines.append(f"| {i} | {r['name']} | {r['error_mean_cm']:.2f} | {low:.2f}-{high:.2f} | "
                      f"{d_low:+.2f} to {d_high:+.2f} | {r['error_p95_cm']:.2f} | {r['error_vs_baseline']:.2f}x | "
                      f"{100 * r['inside_fraction']:.2f} % | {r['ms_per_frame']:.3f} | {r['jitter_mm']:.2f} |")
+    parts = list(report["rows"][0].get("error_by_part_cm", {}))
+    if parts:
+        lines += ["", "Mean error by garment part (cm; the vertices' dominant skinning region, left and right merged; "
+                  f"hem and top edge: the torso within {100 * EDGE_BAND:.0f} cm of an open edge below and above the "
+                  "middle height; the per-vertex picture of the baseline and the lowest row: vertex_error.png):", "",
+                  "| # | configuration | " + " | ".join(parts) + " |", "|---|---|" + "---|" * len(parts)]
+        for i, r in enumerate(report["rows"], start=1):
+            lines.append(f"| {i} | {r['name']} | " + " | ".join(f"{r['error_by_part_cm'][n]:.2f}" for n in parts)
+                         + " |")
     lines += ["", "| extreme input (full pipeline) | max distance from skinned (cm) | non-finite | rejected frames |",
               "|---|---|---|---|"]
     for s in report["stability"]:
