@@ -73,6 +73,8 @@ bench-node: setup
 regressor: setup-test
 	$(BIN)/agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 	$(BIN)/agentdress regressor --database data/trousers_default.h5 --pack data/trousers_sequences.npz
+	$(BIN)/agentdress recurrent --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+	$(BIN)/agentdress recurrent --database data/trousers_default.h5 --pack data/trousers_sequences.npz
 	$(BIN)/agentdress santesteban --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 	$(BIN)/agentdress santesteban --database data/trousers_default.h5 --pack data/trousers_sequences.npz
 	$(BIN)/agentdress eval --database data/tshirt_default.h5 --out docs/eval --workers 0 --quiet

@@ -32,6 +32,8 @@ PASSTHROUGH = (
     ("eval", ".evaluate.evaluate", "main", "speed vs accuracy against held-out newton drapes (trade table, plots)"),
     ("sequences", ".build.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),
     ("regressor", ".build.regressor", "main", "train the regressor pose model from a sequence pack into a database"),
+    ("recurrent", ".build.recurrent", "main", "train the recurrent pose model (a GRU over the regressor's inputs) "
+     "into a database"),
     ("santesteban", ".build.santesteban", "main", "train Santesteban et al.'s garment model (model=santesteban) into "
      "a database"),
 )

@@ -21,3 +21,16 @@ def body():
     from agentdress_ros.body import AnnyBody
 
     return AnnyBody()
+
+
+def assert_no_learning_library_after(code: str) -> None:
+    """Run `code` (Python that loads and runs a trained model) in a fresh interpreter: it must succeed without
+    importing scikit-learn, torch or JAX (offline tools only)."""
+    import subprocess
+    import sys
+
+    check = subprocess.run([sys.executable, "-c", code + "\nimport sys\nprint(sorted(m for m in sys.modules if "
+                            "m.split('.')[0] in ('sklearn', 'torch', 'jax')))\n"],
+                           capture_output=True, text=True, timeout=300)
+    assert check.returncode == 0, check.stderr[-2000:]
+    assert check.stdout.strip().splitlines()[-1] == "[]", check.stdout[-500:]

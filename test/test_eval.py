@@ -39,7 +39,8 @@ def test_quick_eval_measures_every_row_with_finite_numbers(quick_eval):
                                                                       report["database_components"],
                                                                       report["database_regressor"],
                                                                       report["database_santesteban"],
-                                                                      report["database_kdsm"])]
+                                                                      report["database_kdsm"],
+                                                                      report["database_recurrent"])]
     assert report["database_regressor"] and report["database_santesteban"]  # shipped: their rows are measured too
     assert {r["group"] for r in rows} >= {"regressor", "santesteban"}
     neighbors = {r["config"]["neighbors"] for r in rows if r["group"] == "neighbors"}

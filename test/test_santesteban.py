@@ -19,6 +19,8 @@ from agentdress_ros.engine.engine import permute_vertices, select_database
 from agentdress_ros.engine.pose_models import canonical_poses
 from agentdress_ros.engine.santesteban import SantestebanModel, push_out_of_body
 
+from .conftest import assert_no_learning_library_after
+
 ROOT = Path(__file__).resolve().parents[1]
 DATABASE = ROOT / "data" / "tshirt_default.h5"
 DRAPES = ROOT / "data" / "tshirt_default.drapes.npz"
@@ -147,18 +149,14 @@ def test_command_trains_into_the_database_and_no_learning_library_at_run_time(tm
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads(result.stdout.strip().splitlines()[-1])
     assert report["pack_frames"] == 40
-    code = ("import sys, numpy as np\n"
-            "from agentdress_ros.body import AnnyBody\n"
-            "from agentdress_ros.engine import read_database\n"
-            "from agentdress_ros.engine.santesteban import SantestebanModel\n"
-            f"model = SantestebanModel(read_database({str(path)!r}), AnnyBody())\n"
-            "model.set_shape([0.6, 0.6, 0.4, 0.6, 0.5, 0.5])\n"
-            "out = model.synthesize(np.full((31, 3), 0.2), np.zeros(3))\n"
-            "assert np.isfinite(out).all()\n"
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('sklearn', 'torch', 'jax')))\n")
-    check = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert check.returncode == 0, check.stderr[-2000:]
-    assert check.stdout.strip().splitlines()[-1] == "[]"
+    assert_no_learning_library_after(
+        "import numpy as np\n"
+        "from agentdress_ros.body import AnnyBody\n"
+        "from agentdress_ros.engine import read_database\n"
+        "from agentdress_ros.engine.santesteban import SantestebanModel\n"
+        f"model = SantestebanModel(read_database({str(path)!r}), AnnyBody())\n"
+        "model.set_shape([0.6, 0.6, 0.4, 0.6, 0.5, 0.5])\n"
+        "assert np.isfinite(model.synthesize(np.full((31, 3), 0.2), np.zeros(3))).all()\n")
 
 
 def test_parameters_select_the_model_per_garment_and_refuse_what_cannot_run():

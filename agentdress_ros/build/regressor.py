@@ -145,16 +145,31 @@ def fit(data: TrainingData, dofs: np.ndarray, settings: RegressorSettings, progr
     return regressor, mlp
 
 
-def predict(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
-    """(F, V, 3) rest-frame garment for canonical poses (F, B, 3), in numpy (batched; the engine's per-frame path is
-    engine.pose_models.RegressorPoseModel)."""
-    x = (poses.reshape(len(poses), -1)[:, regressor.dofs] - regressor.input_mean) / regressor.input_scale
+def standardized_inputs(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
+    """(F, I) the MLP's standardised inputs for canonical poses (F, B, 3) (or input vectors (F, D))."""
+    return (poses.reshape(len(poses), -1)[:, regressor.dofs] - regressor.input_mean) / regressor.input_scale
+
+
+def mlp_outputs(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
+    """(F, G) the MLP's standardised outputs y (PCA coefficient = y scale + mean) for canonical poses (F, B, 3)."""
+    x = standardized_inputs(regressor, poses)
     for n, (w, b) in enumerate(zip(regressor.weights, regressor.biases)):
         x = x @ w.astype(np.float64) + b
         if n < len(regressor.weights) - 1:
             x = np.maximum(x, 0.0) if regressor.activation == "relu" else np.tanh(x)
-    coefficients = x * regressor.coefficient_scale + regressor.coefficient_mean
+    return x
+
+
+def decode(regressor: Regressor, outputs: np.ndarray) -> np.ndarray:
+    """(F, V, 3) rest-frame garment (or displacement) for standardised MLP outputs (F, G)."""
+    coefficients = outputs * regressor.coefficient_scale + regressor.coefficient_mean
     return regressor.mean + np.einsum("fg,gvk->fvk", coefficients, regressor.basis.astype(np.float64))
+
+
+def predict(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
+    """(F, V, 3) rest-frame garment for canonical poses (F, B, 3), in numpy (batched; the engine's per-frame path is
+    engine.pose_models.RegressorPoseModel)."""
+    return decode(regressor, mlp_outputs(regressor, poses))
 
 
 def vertex_error(predicted: np.ndarray, truth: np.ndarray) -> float:

@@ -41,6 +41,7 @@ at run time. A held-out shape that changes four phenotypes at once is reproduced
 | pose_model/kdsm/skin_indices, .../skin_weights, .../body_distance | (Nk, 4) int32, (Nk, 4) f64, (Nk,) f64 | the tet vertices' skinning and rest distance to the body |
 | pose_model/kdsm/rest | (V, 3) f32 | u^{m_o}: the rest garment the displacements are learned for (in this file's vertex order) |
 | pose_model/kdsm/regressor/... | as pose_model/regressor | the learned d(theta): PCA of the plastic displacements d, MLP from the pose |
+| pose_model/recurrent/input_weights, .../state_weights, .../bias, .../output_weights, .../output_bias | (I, 3H), (H, 3H), (3H,), (H, G), (G,) f32 | optional recurrent correction of pose_model/regressor (engine.pose_models.RecurrentPoseModel): a GRU over the regressor's standardised inputs (gates z, r, n in that order) whose state adds output_weights h + output_bias to the regressor's standardised outputs; attrs hidden (H), info (JSON) |
 | garment_model/santesteban/fit/..., .../wrinkles/... | as pose_model/regressor, dofs in [0, D + 6) | optional garment model of Santesteban et al. 2019 (engine.santesteban): its inputs are the D pose dofs followed by the 6 phenotypes; fit R_G(beta) and wrinkles R_L(beta, theta), both rest-frame displacements of the garment; attrs info (JSON) |
 
 The regressor (Santesteban et al. 2019, Sec. 3-4) is f(beta0, theta) in the rest frame: the garment unposed with
@@ -88,6 +89,8 @@ MAX_LAYERS = 16
 
 KDSM_GROUP = "pose_model/kdsm"
 SANTESTEBAN_GROUP = "garment_model/santesteban"
+RECURRENT_GROUP = "pose_model/recurrent"
+RECURRENT_ARRAYS = ("input_weights", "state_weights", "bias", "output_weights", "output_bias")
 KDSM_ARRAYS = ("origin", "dims", "vertices", "tets", "class_inverse", "lattice_tets", "skin_indices", "skin_weights",
                "body_distance")
 
@@ -114,9 +117,12 @@ class Regressor:
 
 
 def write_regressor(h5, regressor: Regressor, name: str = REGRESSOR_GROUP) -> None:
-    """Write (or replace) the regressor group `name` in an open, writable HDF5 file."""
+    """Write (or replace) the regressor group `name` in an open, writable HDF5 file. A new pose_model/regressor drops
+    the pose_model/recurrent group trained on the one it replaces."""
     if name in h5:
         del h5[name]
+    if name == REGRESSOR_GROUP and RECURRENT_GROUP in h5:
+        del h5[RECURRENT_GROUP]
     group = h5.require_group(name)
     arrays = {"dofs": (regressor.dofs, np.int32), "input_mean": (regressor.input_mean, np.float32),
               "input_scale": (regressor.input_scale, np.float32),
@@ -131,6 +137,35 @@ def write_regressor(h5, regressor: Regressor, name: str = REGRESSOR_GROUP) -> No
     group.attrs["activation"] = regressor.activation
     group.attrs["layers"] = len(regressor.weights)
     group.attrs["info"] = json.dumps(regressor.info)
+
+
+@dataclass(frozen=True)
+class Recurrent:
+    """The recurrent pose model's GRU (group pose_model/recurrent; shapes in the module docstring): its input is the
+    regressor's standardised input x (I,), its state h (H,); the regressor's standardised output y (G,) becomes
+    y + output_weights h + output_bias."""
+
+    input_weights: np.ndarray  # (I, 3H) f32: gates z, r, n
+    state_weights: np.ndarray  # (H, 3H) f32
+    bias: np.ndarray  # (3H,) f32
+    output_weights: np.ndarray  # (H, G) f32
+    output_bias: np.ndarray  # (G,) f32
+    info: dict = field(default_factory=dict)
+
+    @property
+    def hidden(self) -> int:
+        return self.state_weights.shape[0]
+
+
+def write_recurrent(h5, recurrent: Recurrent) -> None:
+    """Write (or replace) the pose_model/recurrent group in an open, writable HDF5 file."""
+    if RECURRENT_GROUP in h5:
+        del h5[RECURRENT_GROUP]
+    group = h5.require_group(RECURRENT_GROUP)
+    for name in RECURRENT_ARRAYS:
+        _create(group, name, np.ascontiguousarray(getattr(recurrent, name), dtype=np.float32))
+    group.attrs["hidden"] = recurrent.hidden
+    group.attrs["info"] = json.dumps(recurrent.info)
 
 
 @dataclass(frozen=True)
@@ -234,6 +269,7 @@ class Database:
     regressor: "Regressor | None" = None
     kdsm_model: "KdsmModel | None" = None
     santesteban: "SantestebanArrays | None" = None
+    recurrent: "Recurrent | None" = None
     shape_basis: str = "absolute"
     binding_triangles: np.ndarray | None = None
     binding_barycentric: np.ndarray | None = None
@@ -331,6 +367,8 @@ def write_database(path, db: Database) -> Path:
             write_kdsm_model(h5, db.kdsm_model)
         if db.santesteban is not None:
             write_santesteban(h5, db.santesteban)
+        if db.recurrent is not None:
+            write_recurrent(h5, db.recurrent)
     partial.replace(path)
     return path
 
@@ -533,7 +571,41 @@ class _Reader:
         extras["regressor"] = self.regressor()
         extras["kdsm_model"] = self.kdsm_model()
         extras["santesteban"] = self.santesteban()
+        extras["recurrent"] = self.recurrent(extras["regressor"])
         return Database(**values, **extras)
+
+    def recurrent(self, regressor) -> Recurrent | None:
+        """The optional pose_model/recurrent group (None when absent): its sizes tied to pose_model/regressor's
+        inputs (I) and outputs (G), which it needs."""
+        self.where = f"group '{RECURRENT_GROUP}'"
+        group = self.h5.get(RECURRENT_GROUP)
+        if group is None:
+            return None
+        if not isinstance(group, h5py.Group):
+            self.fail("is a dataset, not a group")
+        if regressor is None:
+            self.fail(f"needs the group '{REGRESSOR_GROUP}', which is missing")
+        hidden = self.attribute(RECURRENT_GROUP, "hidden")
+        if not (np.ndim(hidden) == 0 and np.asarray(hidden).dtype.kind in "iu" and 1 <= hidden <= 4096):
+            self.fail(f"is {_shown(hidden)!r}, expected a state size in [1, 4096]")
+        info = self.json(RECURRENT_GROUP, "info", "{}", dict)
+        h, i, g = int(hidden), len(regressor.dofs), len(regressor.coefficient_scale)
+        shapes = {"input_weights": (i, 3 * h), "state_weights": (h, 3 * h), "bias": (3 * h,),
+                  "output_weights": (h, g), "output_bias": (g,)}
+        values = {}
+        for name in RECURRENT_ARRAYS:
+            self.where = f"field '{RECURRENT_GROUP}/{name}'"
+            array = self.h5.get(f"{RECURRENT_GROUP}/{name}")
+            if not isinstance(array, h5py.Dataset):
+                self.fail("is missing")
+            if array.shape != shapes[name]:
+                self.fail(f"has shape {array.shape}, expected {shapes[name]} (hidden {h}, the regressor's {i} inputs "
+                          f"and {g} outputs)")
+            value = np.asarray(array[...], dtype=np.float32)
+            if not np.isfinite(value).all() or np.abs(value).max(initial=0.0) > 1.0e6:
+                self.fail("has non-finite or huge values")
+            values[name] = value
+        return Recurrent(**values, info=info)
 
     def santesteban(self) -> SantestebanArrays | None:
         """The optional garment_model/santesteban group (None when absent), its regressors checked like

@@ -284,6 +284,75 @@ class RegressorPoseModel:
         return self.decoder.decode(theta)
 
 
+#: A pose whose largest joint rotation component moves more than this (rad) in one frame is a cut: the recurrent
+#: state restarts.
+JUMP_RAD = 1.0
+
+
+class RecurrentPoseModel:
+    """The `regressor` with memory (Santesteban et al. 2019's R_L is a GRU over the pose sequence): a GRU of the
+    database's pose_model/recurrent group runs over the regressor's standardised inputs, one step per frame, and its
+    state adds a correction to the regressor's standardised outputs before they are decoded. The state belongs to
+    this model (a fork starts its own), restarts on reset() (the node resets on a stamp jump) and on a pose jump
+    (JUMP_RAD). Trained on 30 fps sequences (build.recurrent): one step per new pose at about that rate."""
+
+    name = "recurrent"
+    skinned = True
+    fold_anchor_residuals = False  # a residual at the anchors depends on the state: nothing fixed to fold
+
+    def __init__(self, context: PoseModelContext):
+        reg, rec = context.db.regressor, context.db.recurrent
+        if reg is None or rec is None:
+            raise ValueError("pose model 'recurrent' needs a database with pose_model/regressor and "
+                             "pose_model/recurrent (train them with `agentdress regressor` and `agentdress recurrent`)")
+        self.decoder = RegressorDecoder(reg, context.dtype)
+        self.input_weights = np.asarray(rec.input_weights, dtype=np.float64)
+        self.state_weights = np.asarray(rec.state_weights, dtype=np.float64)
+        self.bias = np.asarray(rec.bias, dtype=np.float64)
+        self.output_weights = np.asarray(rec.output_weights, dtype=np.float64)
+        self.output_bias = np.asarray(rec.output_bias, dtype=np.float64)
+        self._allocate()
+
+    def _allocate(self):
+        self.state = np.zeros(self.state_weights.shape[0])
+        self._last = None
+
+    def fork(self, context: PoseModelContext) -> "RecurrentPoseModel":
+        twin = copy.copy(self)
+        twin.decoder = self.decoder.fork()
+        twin._allocate()
+        return twin
+
+    def reset(self) -> None:
+        self.state[:] = 0.0
+        self._last = None
+
+    def evaluate(self, theta, root, frame):
+        if self._last is not None and np.abs(theta - self._last).max() > JUMP_RAD:
+            self.reset()
+        self._last = np.array(theta, dtype=np.float64)
+        d = self.decoder
+        x = (theta.reshape(-1)[d.dofs] - d.input_mean) / d.input_scale
+        self.state[:] = gru_step(x, self.state, self.input_weights, self.state_weights, self.bias)
+        outputs = d.coefficients_of(theta) + self.state @ self.output_weights + self.output_bias
+        d.coefficients[:] = outputs
+        np.dot(d.coefficients, d.basis, out=d.flat)
+        d.flat += d.mean
+        return d.out
+
+
+def gru_step(x, h, input_weights, state_weights, bias):
+    """One GRU step: the new state (H,) for input x (I,) and state h (H,); weights (I, 3H), (H, 3H), bias (3H,) with
+    the gates z (update), r (reset), n (candidate) in that order (the candidate's state term is gated by r)."""
+    size = len(h)
+    a = x @ input_weights + bias
+    s = h @ state_weights
+    z = 1.0 / (1.0 + np.exp(-(a[:size] + s[:size])))
+    r = 1.0 / (1.0 + np.exp(-(a[size:2 * size] + s[size:2 * size])))
+    n = np.tanh(a[2 * size:] + r * s[2 * size:])
+    return (1.0 - z) * n + z * h
+
+
 class KdsmPoseModel:
     """The learned pose model of the database's pose_model/kdsm group (KDSM paper, Sec. 3-6, at beta0): an MLP of the
     regressor's kind predicts the garment's plastic displacements d(theta) in the KDSM (PCA coefficients, rest
@@ -352,4 +421,5 @@ register_pose_model("lbs")(LbsPoseModel)
 register_pose_model("examples")(ExamplePoseModel)
 register_pose_model("sequence")(SequencePoseModel)
 register_pose_model("regressor")(RegressorPoseModel)
+register_pose_model("recurrent")(RecurrentPoseModel)
 register_pose_model("kdsm")(KdsmPoseModel)

@@ -35,14 +35,15 @@ class Row:
 
 
 def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, santesteban: bool = False,
-               kdsm: bool = False) -> list[Row]:
+               kdsm: bool = False, recurrent: bool = False) -> list[Row]:
     """The rows of the trade table (the anchors' K and the examples pose model's K in {1, 3, 5, 8}, components in
     {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep: N
     anchors restrict both the shape models and the pose model's examples to those anchors (their beta0 drapes),
     the pose model's K staying 5 (capped at N). With `regressor` (the database has one), the learned pose model
     alone and in synthesis, with and without its anchor residuals folded into the shape deltas. With `santesteban`
     (the database has garment_model/santesteban), Santesteban et al.'s own system (engine.santesteban). With `kdsm`
-    (pose_model/kdsm), the `kdsm` pose model alone and in synthesis."""
+    (pose_model/kdsm), the `kdsm` pose model alone and in synthesis; with `recurrent` (pose_model/recurrent), the
+    `recurrent` pose model alone and in synthesis."""
     # sweeps around the node's default (the examples pose model, the most accurate measured)
     base = {"pose_model": "examples"}
     rows = [
@@ -82,6 +83,12 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
                 "regressor", {"pose_model": "regressor"}),
             Row("synthesis with the regressor pose model, no fold", "regressor",
                 {"pose_model": "regressor", "fold": False}),
+        ]
+    if recurrent:
+        rows += [
+            Row("recurrent pose model alone (beta0 garment, no shape model)", "recurrent",
+                {"pose_model": "recurrent", "shape_model": False}),
+            Row("synthesis with the recurrent pose model", "recurrent", {"pose_model": "recurrent"}),
         ]
     if kdsm:
         rows += [
@@ -401,7 +408,8 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
                                   for p in range(len(test.poses)) for k in range(len(test.betas))]))
 
     rows = trade_rows(db.n_anchors, db.n_components, regressor=db.regressor is not None,
-                      santesteban=db.santesteban is not None, kdsm=db.kdsm_model is not None)
+                      santesteban=db.santesteban is not None, kdsm=db.kdsm_model is not None,
+                      recurrent=db.recurrent is not None)
     repeats = 1 if quick else 3
     from tqdm import tqdm
 
@@ -445,7 +453,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         "database_vertices": db.n_vertices,
         "database_components": db.n_components,
         "database_regressor": db.regressor is not None, "database_santesteban": db.santesteban is not None,
-        "database_kdsm": db.kdsm_model is not None,
+        "database_kdsm": db.kdsm_model is not None, "database_recurrent": db.recurrent is not None,
         "test_set": {"poses": test.pose_labels, "betas": test.betas.tolist(), "shape_labels": test.shape_labels,
                      "shape_distance_from_beta0": np.linalg.norm(z, axis=1).tolist(),
                      "sequence_frames": int(len(test.sequence)),
