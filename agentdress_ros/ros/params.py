@@ -59,7 +59,7 @@ PARAMETERS: dict[str, Spec] = {
                                "garment_model/santesteban group; one agent only, README 'Santesteban et al.'s "
                                "system')"),
     "engine": Spec(["pose_model=examples"], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
-                       "examples, regressor), fold, neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
+                       "examples, regressor, recurrent, kdsm), fold, neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
                        "(float32, float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
     "display_subdivision": Spec(1, "rounds of Loop subdivision (0, 1, 2) of each garment for display, published as "
                                    "its cloud and mesh (a fixed sparse matrix after penetration handling; README "
