@@ -229,9 +229,16 @@ class RegressorDecoder:
         twin._allocate()
         return twin
 
+    def standardize(self, inputs) -> np.ndarray:
+        """(I,) the MLP's standardised input for an input vector (whose `dofs` it reads)."""
+        return (inputs.reshape(-1)[self.dofs] - self.input_mean) / self.input_scale
+
     def coefficients_of(self, inputs) -> np.ndarray:
-        """The MLP's standardised output y (G,) for an input vector (whose `dofs` it reads)."""
-        x = (inputs.reshape(-1)[self.dofs] - self.input_mean) / self.input_scale
+        """The MLP's standardised output y (G,) for an input vector (an internal buffer)."""
+        return self.mlp(self.standardize(inputs))
+
+    def mlp(self, x) -> np.ndarray:
+        """The MLP's standardised output y (G,) for a standardised input x (I,) (an internal buffer)."""
         last = len(self.weights) - 1
         for n, (w, b, h) in enumerate(zip(self.weights, self.biases, self.hidden)):
             np.dot(x, w, out=h)
@@ -246,7 +253,11 @@ class RegressorDecoder:
 
     def decode(self, inputs) -> np.ndarray:
         """(3, V) output for an input vector."""
-        self.coefficients[:] = self.coefficients_of(inputs)
+        return self.decode_outputs(self.coefficients_of(inputs))
+
+    def decode_outputs(self, outputs) -> np.ndarray:
+        """(3, V) output for standardised MLP outputs y (G,)."""
+        self.coefficients[:] = outputs
         np.dot(self.coefficients, self.basis, out=self.flat)
         self.flat += self.mean
         return self.out
@@ -315,7 +326,8 @@ class RecurrentPoseModel:
 
     def _allocate(self):
         self.state = np.zeros(self.state_weights.shape[0])
-        self._last = None
+        self._last = self._change = None  # (B, 3) buffers: the last pose, its change to this frame's (first frame)
+        self._has_last = False  # no frame since the last reset
 
     def fork(self, context: PoseModelContext) -> "RecurrentPoseModel":
         twin = copy.copy(self)
@@ -325,20 +337,23 @@ class RecurrentPoseModel:
 
     def reset(self) -> None:
         self.state[:] = 0.0
-        self._last = None
+        self._has_last = False
 
     def evaluate(self, theta, root, frame):
-        if self._last is not None and np.abs(theta - self._last).max() > JUMP_RAD:
-            self.reset()
-        self._last = np.array(theta, dtype=np.float64)
-        d = self.decoder
-        x = (theta.reshape(-1)[d.dofs] - d.input_mean) / d.input_scale
+        if self._last is None:
+            self._last, self._change = np.empty_like(theta), np.empty_like(theta)
+        elif self._has_last:
+            np.subtract(theta, self._last, out=self._change)
+            if np.abs(self._change, out=self._change).max() > JUMP_RAD:
+                self.reset()
+        np.copyto(self._last, theta)
+        self._has_last = True
+        x = self.decoder.standardize(theta)
         self.state[:] = gru_step(x, self.state, self.input_weights, self.state_weights, self.bias)
-        outputs = d.coefficients_of(theta) + self.state @ self.output_weights + self.output_bias
-        d.coefficients[:] = outputs
-        np.dot(d.coefficients, d.basis, out=d.flat)
-        d.flat += d.mean
-        return d.out
+        outputs = self.decoder.mlp(x)  # the decoder's buffer: corrected in place
+        outputs += self.state @ self.output_weights
+        outputs += self.output_bias
+        return self.decoder.decode_outputs(outputs)
 
 
 def gru_step(x, h, input_weights, state_weights, bias):
