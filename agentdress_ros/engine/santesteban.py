@@ -19,7 +19,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..body.kinematics import forward_kinematics, linear_blend_skinning
+from ..body.kinematics import forward_kinematics, linear_blend_skinning, skin_point
 from ..garment.binding import vertex_normals
 from .database import Database
 from .kernels import prepare_pose
@@ -38,27 +38,18 @@ def push_out_of_body(garment, bound, body_rest, body_normals, skin_indices, skin
     vertex's normal moves out along the normal to `margin`. body_rest, body_normals (N, 3): the body's rest
     vertices and unit normals; skin_indices/weights (N, K); transforms (B, 3, 4) of the frame. Returns the count."""
     pushed = 0
-    m = np.empty((3, 4))  # the body vertex's blended transform, reused (no allocation per vertex)
     for v in range(garment.shape[0]):
         b = bound[v]
-        m[:] = 0.0
-        for k in range(skin_indices.shape[1]):
-            w = skin_weights[b, k]
-            if w != 0.0:
-                t = transforms[skin_indices[b, k]]
-                for i in range(3):
-                    for j in range(4):
-                        m[i, j] += w * t[i, j]
-        nx = m[0, 0] * body_normals[b, 0] + m[0, 1] * body_normals[b, 1] + m[0, 2] * body_normals[b, 2]
-        ny = m[1, 0] * body_normals[b, 0] + m[1, 1] * body_normals[b, 1] + m[1, 2] * body_normals[b, 2]
-        nz = m[2, 0] * body_normals[b, 0] + m[2, 1] * body_normals[b, 1] + m[2, 2] * body_normals[b, 2]
+        px, py, pz = skin_point(body_rest[b, 0], body_rest[b, 1], body_rest[b, 2], skin_indices, skin_weights, b,
+                                transforms)
+        # the blended transform's linear part on the normal: the skinned tip of the normal less the skinned point
+        tx, ty, tz = skin_point(body_rest[b, 0] + body_normals[b, 0], body_rest[b, 1] + body_normals[b, 1],
+                                body_rest[b, 2] + body_normals[b, 2], skin_indices, skin_weights, b, transforms)
+        nx, ny, nz = tx - px, ty - py, tz - pz
         length = np.sqrt(nx * nx + ny * ny + nz * nz)
         if length < 1e-12:
             continue
         nx, ny, nz = nx / length, ny / length, nz / length
-        px = m[0, 0] * body_rest[b, 0] + m[0, 1] * body_rest[b, 1] + m[0, 2] * body_rest[b, 2] + m[0, 3]
-        py = m[1, 0] * body_rest[b, 0] + m[1, 1] * body_rest[b, 1] + m[1, 2] * body_rest[b, 2] + m[1, 3]
-        pz = m[2, 0] * body_rest[b, 0] + m[2, 1] * body_rest[b, 1] + m[2, 2] * body_rest[b, 2] + m[2, 3]
         depth = (garment[v, 0] - px) * nx + (garment[v, 1] - py) * ny + (garment[v, 2] - pz) * nz
         if depth < margin:
             garment[v, 0] += (margin - depth) * nx
