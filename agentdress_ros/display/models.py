@@ -62,13 +62,13 @@ def garment_rest(model, body) -> np.ndarray:
     """The garment (V, 3) of a model at rest on the reference shape: a database's skinning rest, or the template
     fitted by its binding."""
     base = _base(model)
-    if getattr(base, "kind", "") == "santesteban":
-        return np.asarray(base.rest, dtype=np.float64)
     engine = getattr(base, "engine", None)
     if engine is not None:
         rest = np.empty(engine.db.rest.shape, dtype=np.float64)
         rest[engine.order] = engine.db.rest  # the engine stores vertices sorted by region; output order here
         return rest
+    if getattr(base, "db", None) is not None:  # a database model in the file's vertex order (Santesteban's)
+        return np.asarray(base.db.rest, dtype=np.float64)
     return base.garment.rest_vertices(body, body.shape(REFERENCE_SHAPE))
 
 

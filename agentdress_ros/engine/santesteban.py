@@ -60,17 +60,20 @@ def push_out_of_body(garment, bound, body_rest, body_normals, skin_indices, skin
 
 
 class SantestebanModel:
-    """Santesteban et al.'s system on a database that holds garment_model/santesteban (see the module docstring).
+    """Santesteban et al.'s system on a database that holds garment_model/santesteban (see the module docstring),
+    under the node's garment-model protocol (ros.garment_models): name, faces (F, 3), n_vertices, kind;
     set_shape(beta (6,)) -> clamped; synthesize(rotvecs (B, 3), root (3,)) -> (V, 3) float32 in the database's
-    vertex order (an internal buffer); reset() (no frame history); clone()."""
+    vertex order (an internal buffer); reset() (no frame history); clone() (buffers of its own)."""
 
     kind = "santesteban"
 
-    def __init__(self, db: Database, body, margin: float = PUSH_MARGIN):
+    def __init__(self, db: Database, body, margin: float = PUSH_MARGIN, name: str | None = None, path=None):
         if db.santesteban is None:
             raise ValueError("model 'santesteban' needs a database with garment_model/santesteban (train it with "
                              "`agentdress santesteban`)")
         self.db, self.body, self.margin = db, body, float(margin)
+        self.name, self.path = name or db.garment, path
+        self.faces = np.ascontiguousarray(db.faces, dtype=np.int32)
         self.fit = RegressorDecoder(db.santesteban.fit)
         self.wrinkles = RegressorDecoder(db.santesteban.wrinkles)
         self.rest = np.asarray(db.rest, dtype=np.float64)

@@ -238,36 +238,6 @@ def _load_engine_model(name: str, path: Path, body: AnnyBody, beta, engine_confi
     return model
 
 
-class SantestebanGarmentModel:
-    """Santesteban et al.'s system (`agentdress_ros.engine.santesteban`) behind the protocol; `clone()` gives a
-    twin with buffers of its own whose set_shape leaves the original alone."""
-
-    kind = "santesteban"
-
-    def __init__(self, name: str, model, faces, path: Path):
-        self.name, self.model, self.path = name, model, path
-        self.faces = np.ascontiguousarray(faces, dtype=np.int32)
-        self.rest = model.rest  # (V, 3) the database's rest garment (display: garment_rest)
-
-    @property
-    def n_vertices(self) -> int:
-        return self.model.n_vertices
-
-    def set_shape(self, beta) -> bool:
-        return self.model.set_shape(beta)
-
-    def synthesize(self, rotvecs, root_translation) -> np.ndarray:
-        return self.model.synthesize(rotvecs, root_translation)
-
-    def reset(self) -> None:
-        self.model.reset()
-
-    def clone(self):
-        twin = copy.copy(self)
-        twin.model = self.model.clone()
-        return twin
-
-
 def _read_database(name: str, path: Path):
     """The database at `path`, a failure raised as GarmentDatabaseError naming the garment and the file."""
     from ..engine import read_database
@@ -280,14 +250,16 @@ def _read_database(name: str, path: Path):
                                    else f"garment {name!r}: database {path}: {text}") from None
 
 
-def _load_santesteban_model(name: str, path: Path, body: AnnyBody, beta) -> SantestebanGarmentModel:
+def _load_santesteban_model(name: str, path: Path, body: AnnyBody, beta):
+    """Santesteban et al.'s system from the database file (engine.santesteban.SantestebanModel, which is a garment
+    model under the protocol itself)."""
     from ..engine.santesteban import SantestebanModel
 
     db = _read_database(name, path)
     if db.santesteban is None:
         raise GarmentDatabaseError(f"garment {name!r}: database {path} has no garment_model/santesteban group "
                                    "(model santesteban): train it with `agentdress santesteban`")
-    model = SantestebanGarmentModel(name, SantestebanModel(db, body), db.faces, path)
+    model = SantestebanModel(db, body, name=name, path=path)
     model.set_shape(beta)
     return model
 

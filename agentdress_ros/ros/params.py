@@ -137,10 +137,10 @@ def parse_garment_map(name: str, value) -> dict[str, str]:
     return result
 
 
-# EngineConfig fields settable from a parameter, with their coercion (the rest are library-only).
 #: The models a garment with a database can run (garment_models): AgentDress synthesis first (the default).
 GARMENT_MODELS = ("agentdress", "santesteban")
 
+# EngineConfig fields settable from a parameter, with their coercion (the rest are library-only).
 _ENGINE_FIELDS = {
     "pose_model": str, "taylor": str, "dtype": str,
     "neighbors": int, "pose_neighbors": int, "components": int, "anchors": int,
