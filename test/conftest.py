@@ -34,3 +34,15 @@ def assert_no_learning_library_after(code: str) -> None:
                            capture_output=True, text=True, timeout=300)
     assert check.returncode == 0, check.stderr[-2000:]
     assert check.stdout.strip().splitlines()[-1] == "[]", check.stdout[-500:]
+
+
+def run_training_command(module: str, *args) -> dict:
+    """`python -m <module> <args>` (a training command that prints a JSON report last); its report."""
+    import json
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", module, *map(str, args)], capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])

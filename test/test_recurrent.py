@@ -1,8 +1,5 @@
 """The `recurrent` pose model: a GRU over the regressor's inputs (build.recurrent with JAX, offline), its numpy
 inference with a state per model, storage."""
-import json
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,7 +13,7 @@ from agentdress_ros.build.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
 from agentdress_ros.engine.pose_models import JUMP_RAD, canonical_poses
 
-from .conftest import assert_no_learning_library_after
+from .conftest import assert_no_learning_library_after, run_training_command
 
 ROOT = Path(__file__).resolve().parents[1]
 DATABASE = ROOT / "data" / "tshirt_default.h5"
@@ -103,11 +100,9 @@ def test_database_round_trip_and_a_wrong_shape_named(tmp_path, database, trained
 def test_command_trains_into_the_database_and_no_learning_library_at_run_time(tmp_path):
     path = tmp_path / "tshirt.h5"
     path.write_bytes(DATABASE.read_bytes())
-    result = subprocess.run([sys.executable, "-m", "agentdress_ros.build.recurrent", "--database", str(path),
-                             "--pack", str(PACK), "--steps", "20", "--hidden", "8"],
-                            capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert json.loads(result.stdout.strip().splitlines()[-1])["settings"]["steps"] == 20
+    report = run_training_command("agentdress_ros.build.recurrent", "--database", path, "--pack", PACK, "--steps", 20,
+                                  "--hidden", 8)
+    assert report["settings"]["steps"] == 20
     assert_no_learning_library_after(
         "import numpy as np\n"
         "from agentdress_ros.body import AnnyBody\n"

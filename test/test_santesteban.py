@@ -1,8 +1,5 @@
 """Santesteban et al. 2019 as a garment model of its own (engine.santesteban, build.santesteban): training,
 numpy inference, the post-process, storage."""
-import json
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -19,7 +16,7 @@ from agentdress_ros.engine.engine import permute_vertices, select_database
 from agentdress_ros.engine.pose_models import canonical_poses
 from agentdress_ros.engine.santesteban import SantestebanModel, push_out_of_body
 
-from .conftest import assert_no_learning_library_after
+from .conftest import assert_no_learning_library_after, run_training_command
 
 ROOT = Path(__file__).resolve().parents[1]
 DATABASE = ROOT / "data" / "tshirt_default.h5"
@@ -143,11 +140,8 @@ def test_database_round_trip_select_permute_and_corruption(body, tmp_path, datab
 def test_command_trains_into_the_database_and_no_learning_library_at_run_time(tmp_path):
     path = tmp_path / "tshirt.h5"
     path.write_bytes(DATABASE.read_bytes())
-    result = subprocess.run([sys.executable, "-m", "agentdress_ros.build.santesteban", "--database", str(path),
-                             "--drapes", str(DRAPES), "--pack", str(PACK), "--pack-frames", "40"],
-                            capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-2000:]
-    report = json.loads(result.stdout.strip().splitlines()[-1])
+    report = run_training_command("agentdress_ros.build.santesteban", "--database", path, "--drapes", DRAPES,
+                                  "--pack", PACK, "--pack-frames", 40)
     assert report["pack_frames"] == 40
     assert_no_learning_library_after(
         "import numpy as np\n"
