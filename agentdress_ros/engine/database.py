@@ -589,22 +589,15 @@ class _Reader:
         if not (np.ndim(hidden) == 0 and np.asarray(hidden).dtype.kind in "iu" and 1 <= hidden <= 4096):
             self.fail(f"is {_shown(hidden)!r}, expected a state size in [1, 4096]")
         info = self.json(RECURRENT_GROUP, "info", "{}", dict)
-        h, i, g = int(hidden), len(regressor.dofs), len(regressor.coefficient_scale)
+        h, i, g = int(hidden), len(regressor.dofs), len(regressor.coefficient_scale)  # tied to the regressor
         shapes = {"input_weights": (i, 3 * h), "state_weights": (h, 3 * h), "bias": (3 * h,),
                   "output_weights": (h, g), "output_bias": (g,)}
         values = {}
         for name in RECURRENT_ARRAYS:
-            self.where = f"field '{RECURRENT_GROUP}/{name}'"
-            array = self.h5.get(f"{RECURRENT_GROUP}/{name}")
-            if not isinstance(array, h5py.Dataset):
-                self.fail("is missing")
-            if array.shape != shapes[name]:
-                self.fail(f"has shape {array.shape}, expected {shapes[name]} (hidden {h}, the regressor's {i} inputs "
-                          f"and {g} outputs)")
-            value = np.asarray(array[...], dtype=np.float32)
-            if not np.isfinite(value).all() or np.abs(value).max(initial=0.0) > 1.0e6:
-                self.fail("has non-finite or huge values")
-            values[name] = value
+            field_name = f"{RECURRENT_GROUP}/{name}"
+            array = self.numeric(field_name, np.float32, shapes[name])
+            self.check_range(field_name, array, (-1.0e6, 1.0e6), np.float32)
+            values[name] = self.cast(array, np.float32)
         return Recurrent(**values, info=info)
 
     def santesteban(self) -> SantestebanArrays | None:
