@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.database import Recurrent, read_database, write_recurrent
-from .regressor import mlp_outputs, pack_data, standardized_inputs, store_in_database
+from .regressor import kept_frames, mlp_outputs, pack_data, standardized_inputs, store_in_database
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,8 @@ def sequences(pack: dict, db, max_offset: float) -> list[tuple[np.ndarray, np.nd
     """[(canonical poses (T, B, 3), rest-frame garment (T, V, 3))] runs of consecutive frames of each clip, cut where
     a frame lost the garment."""
     frames = pack_data(pack, db, None)
-    keep = np.linalg.norm(np.asarray(pack["offsets"]), axis=2).max(axis=1) <= max_offset
+    keep = np.zeros(len(frames.poses), dtype=bool)
+    keep[kept_frames(pack, np.arange(len(keep)), max_offset)] = True
     clip, frame = np.asarray(pack["clip"]), np.asarray(pack["frame"])
     runs = []
     for c in np.unique(clip):

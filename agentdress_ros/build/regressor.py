@@ -86,6 +86,15 @@ def example_data(db) -> TrainingData:
     return TrainingData(poses, positions, np.array(["examples"] * len(poses)))
 
 
+def kept_frames(pack: dict, frames: np.ndarray, max_offset: float | None) -> np.ndarray:
+    """The pack frames (indices) the `regressor` trains on: those whose garment strays at most max_offset (m) from
+    its skinned place (a sequence that lost the garment is no drape to hold or learn); all with None."""
+    if max_offset is None:
+        return frames
+    stray = np.linalg.norm(np.asarray(pack["offsets"][frames], dtype=np.float32), axis=2).max(axis=1)
+    return frames[stray <= max_offset]
+
+
 def pack_data(pack: dict, db, max_offset: float | None = None) -> TrainingData:
     """The frames of a loaded sequence pack (load_sequence_pack); refuses test clips and another garment. With
     max_offset (m), frames whose largest rest-frame offset exceeds it are left out (see RegressorSettings)."""
@@ -96,8 +105,7 @@ def pack_data(pack: dict, db, max_offset: float | None = None) -> TrainingData:
     if pack["rest"].shape != db.rest.shape or np.abs(pack["rest"] - db.rest).max() > 1e-5:
         raise ValueError(f"the pack's rest garment ({str(pack['garment'])}) is not the database's ({db.garment})")
     offsets = np.asarray(pack["offsets"])
-    keep = np.arange(len(offsets)) if max_offset is None else np.flatnonzero(
-        np.linalg.norm(offsets, axis=2).max(axis=1) <= max_offset)
+    keep = kept_frames(pack, np.arange(len(offsets)), max_offset)
     positions = offsets[keep].astype(np.float64) + np.asarray(pack["rest"], dtype=np.float64)
     return TrainingData(canonical_poses(pack["rotvecs"][keep]), positions, np.array(names)[pack["clip"][keep]])
 

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ..body.kinematics import forward_kinematics, linear_blend_skinning
-from ..build.regressor import RegressorSettings, TrainingData, clip_folds, fit, pack_data, pose_dofs, predict
+from ..build.regressor import (RegressorSettings, TrainingData, clip_folds, fit, kept_frames, pack_data, pose_dofs,
+                                predict)
 from .embedding import KdsmPoser
 from .mesh import KDSM, KDSMSettings, build_kdsm
 from .training import GarmentFrames, drape_clearance, pack_frames, spread_frames, training_targets
@@ -39,15 +40,6 @@ class KdsmModelSettings:
     margin: float = 0.02  # m: shell thickness = the pack's farthest drape vertex from the posed body + margin
     clearance_frames: int = 0  # frames measured for the clearance (0: every frame of the pack)
     regressor: RegressorSettings = field(default_factory=RegressorSettings)  # PCA + MLP, as the `regressor`
-
-
-def kept_frames(pack: dict, frames: np.ndarray, max_offset: float | None) -> np.ndarray:
-    """The pack frames (indices) the `regressor` trains on: those whose garment strays at most max_offset (m) from
-    its skinned place (a sequence that lost the garment is no drape to hold or learn); all with None."""
-    if max_offset is None:
-        return frames
-    stray = np.linalg.norm(np.asarray(pack["offsets"][frames], dtype=np.float32), axis=2).max(axis=1)
-    return frames[stray <= max_offset]
 
 
 def database_kdsm(db, body, shape, pack, settings: KdsmModelSettings) -> KDSM:
