@@ -7,10 +7,11 @@ import pytest
 pytest.importorskip("rclpy", reason="rclpy (ros-jazzy-rclpy wheels, requirements/runtime.txt) is not importable")
 
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
-from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
+from sensor_msgs.msg import JointState, PointCloud2, PointField  # noqa: E402
 
 from agentdress_ros.motion.joint_names import JOINT_NAMES  # noqa: E402
-from agentdress_ros.ros.messages import JointStateReader, SerializedCloud, cloud_to_vertices  # noqa: E402
+from agentdress_ros.ros.messages import (JointStateReader, SerializedCloud, cloud_to_vertices,  # noqa: E402
+                                         serialized_cloud_to_vertices)
 
 
 def _joint_state(names, positions, frame_id="world", sec=12, nanosec=345, velocity=()):
@@ -33,6 +34,59 @@ def test_serialized_cloud_deserializes_to_the_frame_written(n_vertices):
         assert (msg.height, msg.width, msg.point_step, msg.row_step) == (1, n_vertices, 12, 12 * n_vertices)
         assert [f.name for f in msg.fields] == ["x", "y", "z"] and msg.is_dense
         assert cloud.data == cloud.set(vertices, stamp_ns)  # `data` is the last frame (the keep-alive re-sends it)
+
+
+def _cloud(points, fields, point_step, frame_id="f", height=1, big_endian=False, sec=7, nanosec=250_000_000):
+    """A PointCloud2 of `points` (N, 3) at the (name, offset, datatype) `fields`, other bytes of a point random."""
+    n = len(points)
+    raw = np.random.default_rng(n).integers(0, 255, (n, point_step), dtype=np.uint8)
+    order = ">f4" if big_endian else "<f4"
+    offsets = {name: offset for name, offset, _ in fields}
+    for k, axis in enumerate("xyz"):
+        raw[:, offsets[axis]:offsets[axis] + 4] = np.ascontiguousarray(points[:, k], dtype=order).view(np.uint8).reshape(n, 4)
+    msg = PointCloud2(height=height, width=n // height, point_step=point_step, row_step=point_step * (n // height),
+                      is_bigendian=big_endian, is_dense=True, data=raw.tobytes(),
+                      fields=[PointField(name=name, offset=offset, datatype=dtype, count=1)
+                              for name, offset, dtype in fields])
+    msg.header.frame_id = frame_id
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    return msg
+
+
+def test_serialized_cloud_reader_matches_the_deserializer_on_every_layout():
+    """A raw subscription's PointCloud2 bytes read with numpy (the display bridge) give what rclpy's deserializer
+    and cloud_to_vertices give, bit for bit: packed x, y, z; fields after others, padding, two rows, big endian,
+    odd-length frame ids and names (CDR alignment); malformed bytes raise ValueError, never read past the end."""
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=(6, 3)).astype(np.float32)
+    layouts = [
+        ([("x", 0, 7), ("y", 4, 7), ("z", 8, 7)], 12, {}),
+        ([("intensity", 0, 7), ("x", 4, 7), ("y", 8, 7), ("z", 12, 7), ("rgb", 16, 6)], 24, {"height": 2}),
+        ([("z", 0, 7), ("ring", 4, 4), ("y", 8, 7), ("x", 12, 7)], 16, {"big_endian": True, "frame_id": "abcde"}),
+        ([("a_long_name", 0, 2), ("x", 1, 7), ("y", 5, 7), ("z", 9, 7)], 13, {"frame_id": ""}),
+    ]
+    for fields, step, extra in layouts:
+        msg = _cloud(points, fields, step, **extra)
+        data = serialize_message(msg)
+        vertices, stamp = serialized_cloud_to_vertices(data)
+        assert np.array_equal(vertices, points) and vertices.dtype == np.float32 and vertices.flags.writeable
+        assert np.array_equal(vertices, cloud_to_vertices(deserialize_message(data, PointCloud2)))
+        assert stamp == pytest.approx(7.25)
+    packed = SerializedCloud("agent", 1200)
+    frame = rng.normal(size=(1200, 3)).astype(np.float32)
+    assert np.array_equal(serialized_cloud_to_vertices(packed.set(frame, 3_000_000_001))[0], frame)
+    good = serialize_message(_cloud(points, layouts[1][0], 24, height=2))
+    no_z = _cloud(points, layouts[0][0], 12)
+    no_z.fields[2].name = "w"
+    no_z = serialize_message(no_z)
+    as_double = serialize_message(_cloud(points, [("x", 0, 8), ("y", 8, 8), ("z", 16, 8)], 24))
+    beyond = _cloud(points, layouts[0][0], 12)
+    beyond.fields[2].offset = 10
+    beyond = serialize_message(beyond)
+    for bad in (b"", b"\x00\x01\x00\x00", good[:60], good[:-40], b"\x07" + good[1:], no_z, as_double, beyond,
+                good[:4] + b"\xff" * (len(good) - 4)):
+        with pytest.raises(ValueError):
+            serialized_cloud_to_vertices(bad)
 
 
 def test_joint_state_reader_matches_the_deserializer_on_every_kind_of_message():

@@ -179,7 +179,7 @@ class Published:
         self.frames = {}
 
     def __call__(self, agent, frames, stamp_ns):
-        self.frames[agent.name] = {g: v.copy() for g, v in frames.items()}
+        self.frames[agent.name] = {g: None if v is None else v.copy() for g, v in frames.items()}
 
 
 def test_agents_share_garment_data_and_hold_a_small_state(scene, body, walk):
@@ -213,6 +213,25 @@ def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
         expected = engine.synthesize(rot[frame], root[frame] + offset)
         assert np.allclose(published.frames[name]["tshirt"], expected, atol=1e-5)
     assert not np.allclose(published.frames["a"]["tshirt"], published.frames["b"]["tshirt"], atol=1e-2)
+
+
+def test_a_body_streamed_as_bones_is_posed_without_vertices(scene, walk):
+    """bones_only (set by the crowd node while nobody takes the body's points, only its bones): the body's frame is
+    None, its bone transforms are those of the full frame, and the garments are the same as with the body's
+    vertices."""
+    agent = _add(scene, "a", publish_body=True)
+    frames, transforms = [], []
+    for bones_only in (False, True):
+        agent.garments["body"].bones_only = bones_only
+        agent.pose.set(walk.rotvecs[6], walk.root_translation[6])
+        published = Published()
+        assert scene.tick(published).dressed == ["a"]
+        frames.append(published.frames["a"])
+        transforms.append(agent.garments["body"].base.transforms.copy())
+    assert frames[0]["body"].shape == (13380, 3) and frames[1]["body"] is None
+    assert np.array_equal(transforms[0], transforms[1])
+    for garment in ("tshirt", "trousers"):
+        assert np.allclose(frames[0][garment], frames[1][garment], atol=1e-6)
 
 
 def test_idle_agents_cost_nothing(scene, walk):

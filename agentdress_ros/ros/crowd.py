@@ -20,7 +20,8 @@ thread and go live on a later tick; removed ones are dropped at once (their publ
 
 Inputs are polled: the agents' subscriptions sit on a second node that no executor spins, and each tick takes what
 waited (a KEEP_LAST queue keeps only the newest poses of agents nobody looked at). The agents nearest the viewer in
-view (ARRIVAL_AGENTS) also get a subscription on the spun node, whose callback dresses each pose as it arrives.
+view (ARRIVAL_AGENTS; without a viewer pose, every agent of a crowd that small) also get a subscription on the spun
+node, whose callback dresses each pose as it arrives.
 """
 from __future__ import annotations
 
@@ -329,7 +330,7 @@ class Crowd:
         the spun node, whose callback answers each pose as it arrives (at most once per half period: a flood is
         answered at the node's rate); an agent leaving that set loses it. The executor waits on few entities."""
         node = self.node
-        answered = set(self._nearest_in_view()) if self.config["answer_on_arrival"] else set()
+        answered = set(self._answered_on_arrival()) if self.config["answer_on_arrival"] else set()
         for name in [n for n in self.arrivals if n not in answered]:
             node.destroy_subscription(self.arrivals.pop(name))
         for name in answered:
@@ -338,6 +339,16 @@ class Crowd:
                     JointState, f"{name}/joint_states",
                     node._guarded(f"{name}/joint_states", lambda m, n=name: self._on_arrival(n, m)),
                     node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION, raw=True)
+
+    def _answered_on_arrival(self) -> list[str]:
+        """The agents whose poses are dressed as they arrive: the nearest in view. Without a viewer pose (or with
+        LOD off) no agent is nearer than another, so that holds only for a crowd of at most ARRIVAL_AGENTS: in a larger one, a few agents
+        picked by name took the budget's slack and the ticks dressed the rest on alternate ticks (ten agents: 60
+        frames a second to four, 15 to the other six)."""
+        ranked = self.scene.viewer is not None and self.scene.config.lod_enabled  # else every distance is 0
+        if not ranked and len(self.scene.agents) > ARRIVAL_AGENTS:
+            return []
+        return self._nearest_in_view()
 
     def _nearest_in_view(self) -> list[str]:
         """The ARRIVAL_AGENTS agents nearest the viewer in view, nearest first."""
@@ -414,6 +425,10 @@ class Crowd:
         stamp_ns = stamp_ns or self.node.get_clock().now().nanoseconds
         frame_id = agent.spec.frame_id
         for g, vertices in frames.items():
+            if vertices is None:  # posed as bones only (_sync_bones_only)
+                if g in entity["bones"] and np.isfinite(agent.garments[g].base.transforms).all():
+                    self._publish_bones(agent, entity, g, stamp_ns)
+                continue
             if not np.isfinite(vertices).all():  # never emit garbage: keep the last good cloud
                 self.node.stats.counts[f"non_finite_output:{agent.name}/{g}"] += 1
                 continue
@@ -443,12 +458,28 @@ class Crowd:
         started = time.perf_counter()
         self.poll()
         self._install_new()
+        if self.scene.ticks % SHAPE_POLL_TICKS == 0:
+            self._sync_bones_only()
         report = self.scene.tick(self._publish, started=started)
         after = time.perf_counter()
         self.sync_arrival()
         self._install_new()  # agents installed by this tick (built on the worker)
         self.scene.note_after_ms(1e3 * (time.perf_counter() - after))
         return report
+
+    def _sync_bones_only(self):
+        """A template streamed as bones (the body) whose points nobody takes (a display client skins it from the
+        bones) is posed without vertices: its LBS and 160 kB cloud were most of an agent's frame. Markers need the
+        vertices, so not while they are drawn. A late subscriber to the points gets them within SHAPE_POLL_TICKS."""
+        markers = self.config["marker_rate_hz"] > 0
+        for name, entity in self.entities.items():
+            agent = entity["installed"]
+            if agent is None:
+                continue
+            for g in entity["bones"]:
+                garment = agent.garments.get(g)
+                if garment is not None:
+                    garment.bones_only = not markers and entity["points"][g].get_subscription_count() == 0
 
     def _install_new(self):
         for agent in list(self.scene.agents.values()):

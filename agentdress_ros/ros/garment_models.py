@@ -137,6 +137,11 @@ class _SkinnedBase:
         return linear_blend_skinning(self.rest, self._skin_indices, self._skin_weights,
                                      transforms.astype(np.float32), self._out)
 
+    def pose_bones(self, rotvecs, root_translation) -> None:
+        """Only the frame's bone transforms (B, 3, 4) into `transforms`, for a client that skins the rest itself:
+        no vertices (the body's 13,380 are most of an agent's frame cost in a crowd)."""
+        self.transforms, _ = self.body.pose(self.shape, rotvecs, root_translation)
+
     def skin_binding(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rest (V, 3) float32 on the current shape, bone indices (V, K), weights (V, K)): with `transforms` of a
         frame, what reproduces that frame exactly (messages.make_skin)."""

@@ -19,6 +19,7 @@ __all__ = [
     "SerializedCloud",
     "bones_to_transforms",
     "serialized_bones_to_transforms",
+    "serialized_cloud_to_vertices",
     "make_skin",
     "skin_to_arrays",
     "cloud_to_vertices",
@@ -275,6 +276,59 @@ class SerializedBones:
                          int(stamp_ns % 1_000_000_000))
         self.data = bytes(self._buffer)
         return self.data
+
+
+def _read_string_end(data: bytes, endian: str, offset: int) -> int:
+    """Offset just past a CDR string (uint32 length incl. the NUL, then the bytes) aligned at `offset`."""
+    offset = _align(offset, 4)
+    (length,) = struct.unpack_from(endian + "I", data, offset)
+    return offset + 4 + length
+
+
+def serialized_cloud_to_vertices(data: bytes) -> tuple[np.ndarray, float]:
+    """A serialized sensor_msgs/PointCloud2 (a raw subscription's bytes) with float32 x, y, z at any offsets ->
+    (vertices (V, 3) float32, stamp in seconds), read with numpy from the CDR layout: no message object is built
+    (a display bridge takes thousands of clouds a second). ValueError when the bytes are not such a cloud."""
+    data = bytes(data)
+    if len(data) < 24 or data[0] != 0 or data[1] not in (0, 1):
+        raise ValueError("not a CDR-serialized message")
+    endian = "<" if data[1] == 1 else ">"
+    try:
+        sec, nanosec = struct.unpack_from(endian + "iI", data, 4)
+        offset = _read_string_end(data, endian, 12)  # header.frame_id
+        height, width, n_fields = struct.unpack_from(endian + "III", data, _align(offset, 4))
+        offset = _align(offset, 4) + 12
+        offsets, types = {}, {}
+        for _ in range(n_fields):
+            start = _align(offset, 4)
+            (length,) = struct.unpack_from(endian + "I", data, start)
+            name = data[start + 4:start + 3 + length].decode()
+            offset = _align(start + 4 + length, 4)
+            field_offset, = struct.unpack_from(endian + "I", data, offset)
+            types[name], offsets[name] = data[offset + 4], field_offset
+            offset = _align(offset + 5, 4) + 4  # datatype (uint8), then count (uint32)
+        is_bigendian = data[offset]
+        point_step, _, size = struct.unpack_from(endian + "III", data, _align(offset + 1, 4))
+        data_at = _align(offset + 1, 4) + 12
+    except (struct.error, IndexError, UnicodeDecodeError) as error:
+        raise ValueError(f"truncated or malformed PointCloud2 ({error})") from None
+    missing = [axis for axis in "xyz" if types.get(axis) != 7]  # 7: FLOAT32
+    if missing:
+        raise ValueError(f"PointCloud2 has no float32 field(s) {missing}")
+    count = height * width
+    if max(offsets[a] for a in "xyz") + 4 > point_step:
+        raise ValueError(f"PointCloud2 field offsets {offsets} exceed its point step {point_step}")
+    if size < count * point_step or data_at + size > len(data):
+        raise ValueError(f"PointCloud2 of {count} points does not fit its {size} data bytes")
+    stamp = sec + 1e-9 * nanosec
+    byte_order = ">" if is_bigendian else "<"
+    if point_step == 12 and [offsets[a] for a in "xyz"] == [0, 4, 8]:  # packed x, y, z: one view
+        return np.frombuffer(data, dtype=byte_order + "f4", count=3 * count, offset=data_at).reshape(count, 3) \
+            .astype(np.float32), stamp
+    dtype = np.dtype({"names": list("xyz"), "formats": [byte_order + "f4"] * 3,
+                      "offsets": [offsets[a] for a in "xyz"], "itemsize": point_step})
+    points = np.frombuffer(data, dtype=dtype, count=count, offset=data_at)
+    return np.stack([points["x"], points["y"], points["z"]], axis=1).astype(np.float32), stamp
 
 
 def _poses_to_transforms(poses: np.ndarray) -> np.ndarray:

@@ -92,7 +92,8 @@ class GarmentLibrary:
 class AgentGarment:
     """One agent's garment over a shared model, with one level per tier (lod.Tier).
 
-    dress(level, rotvecs, root) -> (V, 3) float32 (an internal buffer, valid until the next call).
+    dress(level, rotvecs, root) -> (V, 3) float32 (an internal buffer, valid until the next call), or None while
+    `bones_only` is set on a skinned template (its model then holds only the frame's bone transforms).
     set_shape(beta) -> clamped (off the frame path; swaps state by reference).
     """
 
@@ -121,6 +122,7 @@ class AgentGarment:
             self._levels = [("model", self.base)] * len(tiers)
         self._out = np.zeros((self.n_vertices, 3), dtype=np.float32)
         self._old = np.zeros_like(self._out)
+        self.bones_only = False  # set by the owner while nobody takes this template's vertices, only its bones
         self.level: int | None = None
         self._fade_from: int | None = None
         self._fade_left = 0
@@ -170,7 +172,11 @@ class AgentGarment:
         """Levels a and b compute the same thing (no fade needed between them)."""
         return self._levels[a] == self._levels[b]
 
-    def dress(self, level: int, rotvecs, root) -> np.ndarray:
+    def dress(self, level: int, rotvecs, root) -> np.ndarray | None:
+        if self.bones_only and not self._engines:  # every tier is the same LBS model: nothing to fade
+            self.level = level
+            self.base.pose_bones(rotvecs, root)
+            return None
         if self.level is not None and level != self.level and not self.same_output(level, self.level) \
                 and self.fade_frames > 0:
             self._fade_from, self._fade_left = self.level, self.fade_frames
