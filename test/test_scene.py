@@ -322,6 +322,11 @@ def test_agents_are_added_and_refitted_off_the_frame_path_and_removed(scene, wal
         time.sleep(0.01)
     after = agent.garments["tshirt"].base.shape_report.effective
     assert not np.allclose(before, after) and agent.dirty
+    assert scene.status()["refits"] == 1
+    scene.request_shape("late", (0.3, 0.5, 0.5, 0.7, 0.5, 0.5))  # a repeated shape is no refit
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert scene.status()["refits"] == 1
     mid = agent.garments["tshirt"]._levels[1][1]
     assert mid._state is agent.garments["tshirt"].base._state  # every tier follows the one shape state
     assert scene.tick().dressed == ["late"]

@@ -74,6 +74,7 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
         if not node.wait_for_output("crowd ready", timeout=600.0):
             raise RuntimeError(f"node did not start:\n{node.output()}")
         demo = ChildProcess(demo_args, env, log_dir / f"demo_{mode}_{count}.log")
+        started = time.monotonic()
         with ros_node("agentdress_bench_crowd", domain) as (client, executor):
             state = {"latency": [], "seen": set(), "status": [], "measuring": False}
 
@@ -89,8 +90,11 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
                               60.0):
                 raise RuntimeError(f"the agents' shapes did not reach the node:\n{node.output()}\n{demo.output()}")
             spin_until(executor, lambda: False, 2.0)  # the status after the shapes were taken
-            if not spin_until(executor, lambda: state["status"][-1]["crowd"]["worker_idle"], 600.0):
+            # every agent refitted to its shape (each agent's is not the node's default), the worker idle
+            if not spin_until(executor, lambda: state["status"][-1]["crowd"]["worker_idle"] and state["status"][-1][
+                    "crowd"].get("refits", 0) >= count, 600.0):
                 raise RuntimeError("the node did not finish fitting the agents' shapes within 600 s")
+            fitted_after = time.monotonic() - started
             spin_until(executor, lambda: False, warmup)
             detail = state["status"][-1]["crowd"]["agents_detail"]
             nearest = min(detail, key=lambda n: (not detail[n]["visible"], detail[n]["distance"], n))  # in view
@@ -134,6 +138,8 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
             "cpu_percent": round(100.0 * cpu / wall, 1), "rss_mb": round(rss, 1),
             "nearest_agent": nearest, "nearest_latency_ms": percentiles(state["latency"], digits=3),
             "nearest_pose_transport_ms": percentiles(pose_state["latency"], digits=3),
+            "shapes_fitted_after_s": round(fitted_after, 1),
+            "refits_while_measuring": crowd.get("refits", 0) - crowd0.get("refits", 0),
         }
     finally:
         if demo is not None:

@@ -211,6 +211,7 @@ class Scene:
         self.agents: dict[str, Agent] = {}
         self.viewer: Viewer | None = None
         self.ticks = 0
+        self.refits = 0  # shape refits done by the worker (a repeated shape is not one)
         self.after_ms = 0.0  # smoothed caller's work after each tick (note_after_ms), reserved from the budget
         self.between_ms = 0.0  # smoothed work of the between_agents hook per tick (arrivals answered), reserved too
         self.level_cost: dict[int, float] = {}
@@ -301,6 +302,7 @@ class Scene:
                         agent.beta = arg
                         agent.shape_generation += 1
                         agent.dirty = True
+                        self.refits += 1
             except Exception as error:  # a bad request never stops the scene: report, keep what runs
                 self.on_error(f"agent {name!r}: cannot {'build' if kind == 'add' else 'refit'}: {error}")
             finally:
@@ -469,4 +471,4 @@ class Scene:
         return {"agents": len(self.agents), "tiers": self.stats.as_dict(),
                 "budget_ms": self.config.budget_ms, "lod": self.config.lod_enabled,
                 "viewer": None if self.viewer is None else [round(float(v), 3) for v in self.viewer.position],
-                "shared_garments": len(self.library)}
+                "shared_garments": len(self.library), "refits": self.refits}
