@@ -205,7 +205,8 @@ def test_the_page_draws_the_walking_dressed_agent_with_three_webgl(scene, browse
 def test_the_page_skins_the_body_exactly_as_the_node_did(scene, browser):
     """The body streams as its binding once and its bone transforms per frame (31 x 12 floats instead of 13,380 x 3);
     the page skins it on the GPU. What the page draws (three.js' CPU twin of its skinning shader) is the node's own
-    body cloud of the same stamp, within 0.05 mm; the garments still stream as vertices."""
+    body cloud of the same stamp, within 0.05 mm; the garments still stream as vertices. While nobody subscribes to
+    the body's points the node poses it as bones only, and a subscriber gets its clouds again."""
     from sensor_msgs.msg import PointCloud2
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -215,6 +216,11 @@ def test_the_page_skins_the_body_exactly_as_the_node_did(scene, browser):
     url, _ = scene
     state = _state(url)
     assert state["agentdress_node/body"]["skinned"] and not state["agentdress_node/tshirt"]["skinned"], state
+    # nobody takes the body's points yet (the viewer takes its bones): the node poses it without vertices
+    context, page, errors = _open(browser, url)
+    page.wait_for_function("(agentdress.status()['/agentdress_node'] || {counts: {}}).counts"
+                           "['bones_only_frames:body'] > 0", timeout=60_000)
+    context.close()
     clouds = {}
 
     def on_cloud(msg):

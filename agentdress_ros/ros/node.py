@@ -5,7 +5,8 @@ Topics (relative to the node, `~` = /agentdress_node):
   in   <shape_topic>        std_msgs/Float32MultiArray    (QoS qos.shape.*, default reliable, depth 1)
   out  ~/<garment>/points   sensor_msgs/PointCloud2       every tick with a new pose (qos.points.*: best effort, 1)
   out  ~/<garment>/mesh     shape_msgs/Mesh               reliable, transient local: once per garment (re)build
-  out  ~/body/points, ~/body/mesh                         only with publish_body
+  out  ~/body/points, ~/body/mesh                         only with publish_body (points only while someone
+                                                          subscribes: else the body is posed as bones alone)
   out  ~/body/skin               std_msgs/Float32MultiArray    reliable, transient local: the body's rest vertices,
                                                           bone indices and weights (messages.make_skin), once per
                                                           (re)build and shape
@@ -476,6 +477,9 @@ class AgentDressNode(Node):
         stamp = stamp_from_ns(self.pose.stamp_ns or self.get_clock().now().nanoseconds)
         synthesis = 0.0
         for name, model in self.models.items():
+            if self._bones_only(name):
+                self._pose_bones_only(name, model, rotvecs, translation, stamp)
+                continue
             t0 = time.perf_counter()
             try:
                 vertices = model.synthesize(rotvecs, translation)
@@ -499,6 +503,25 @@ class AgentDressNode(Node):
         self.stats.tick_ms.append(1e3 * (time.perf_counter() - start))
         self._done_version, self._dirty, self._last_publish = self.pose.version, False, now
         self._last_compute = now
+
+    def _bones_only(self, name: str) -> bool:
+        """A plain-LBS model streamed as bones (the body) whose points nobody takes - a display client skins it from
+        `skin` and `bones` - is posed without its vertices (13,380 for the body, a 160 kB cloud each frame). Not
+        while Markers are drawn: they need the vertices."""
+        return name in self.bone_pubs and self.config["marker_rate_hz"] <= 0 \
+            and self.point_pubs[name].get_subscription_count() == 0
+
+    def _pose_bones_only(self, name: str, model, rotvecs, translation, stamp):
+        try:
+            model.pose_bones(rotvecs, translation)
+        except Exception as error:
+            self._warn(f"synthesis/{name}", f"{name}: posing failed ({error!r})")
+            return
+        if not np.isfinite(model.transforms).all():  # never emit garbage: the client keeps the last good bones
+            self.stats.counts[f"non_finite_output:{name}"] += 1
+            return
+        self._publish_bones(name, model.transforms, stamp)
+        self.stats.counts[f"bones_only_frames:{name}"] += 1
 
     def _crowd_tick(self, now: float):
         start = time.perf_counter()
