@@ -167,11 +167,19 @@ def cloud_to_vertices(msg) -> np.ndarray:
     missing = [axis for axis in "xyz" if axis not in offsets]
     if missing:
         raise ValueError(f"PointCloud2 has no field(s) {missing}")
-    count = msg.width * msg.height
-    dtype = np.dtype({"names": list("xyz"), "formats": [">f4" if msg.is_bigendian else "<f4"] * 3,
-                      "offsets": [offsets[a] for a in "xyz"], "itemsize": msg.point_step})
-    raw = np.frombuffer(bytes(msg.data), dtype=dtype, count=count)
-    return np.stack([raw["x"], raw["y"], raw["z"]], axis=1).astype(np.float32)
+    return _xyz_points(bytes(msg.data), 0, msg.width * msg.height, offsets, msg.point_step, msg.is_bigendian)
+
+
+def _xyz_points(data: bytes, start: int, count: int, offsets: dict, point_step: int, big_endian) -> np.ndarray:
+    """(count, 3) float32 copy of the x, y, z float32 fields at `offsets` of `count` points from byte `start`."""
+    byte_order = ">" if big_endian else "<"
+    if point_step == 12 and [offsets[a] for a in "xyz"] == [0, 4, 8]:  # packed x, y, z: one view
+        return np.frombuffer(data, dtype=byte_order + "f4", count=3 * count, offset=start).reshape(count, 3) \
+            .astype(np.float32)
+    dtype = np.dtype({"names": list("xyz"), "formats": [byte_order + "f4"] * 3,
+                      "offsets": [offsets[a] for a in "xyz"], "itemsize": point_step})
+    points = np.frombuffer(data, dtype=dtype, count=count, offset=start)
+    return np.stack([points["x"], points["y"], points["z"]], axis=1).astype(np.float32)
 
 
 def make_mesh(vertices: np.ndarray, faces: np.ndarray):
@@ -301,9 +309,9 @@ def serialized_cloud_to_vertices(data: bytes) -> tuple[np.ndarray, float]:
         offsets, types = {}, {}
         for _ in range(n_fields):
             start = _align(offset, 4)
-            (length,) = struct.unpack_from(endian + "I", data, start)
-            name = data[start + 4:start + 3 + length].decode()
-            offset = _align(start + 4 + length, 4)
+            end = _read_string_end(data, endian, start)
+            name = data[start + 4:end - 1].decode()
+            offset = _align(end, 4)
             field_offset, = struct.unpack_from(endian + "I", data, offset)
             types[name], offsets[name] = data[offset + 4], field_offset
             offset = _align(offset + 5, 4) + 4  # datatype (uint8), then count (uint32)
@@ -320,15 +328,7 @@ def serialized_cloud_to_vertices(data: bytes) -> tuple[np.ndarray, float]:
         raise ValueError(f"PointCloud2 field offsets {offsets} exceed its point step {point_step}")
     if size < count * point_step or data_at + size > len(data):
         raise ValueError(f"PointCloud2 of {count} points does not fit its {size} data bytes")
-    stamp = sec + 1e-9 * nanosec
-    byte_order = ">" if is_bigendian else "<"
-    if point_step == 12 and [offsets[a] for a in "xyz"] == [0, 4, 8]:  # packed x, y, z: one view
-        return np.frombuffer(data, dtype=byte_order + "f4", count=3 * count, offset=data_at).reshape(count, 3) \
-            .astype(np.float32), stamp
-    dtype = np.dtype({"names": list("xyz"), "formats": [byte_order + "f4"] * 3,
-                      "offsets": [offsets[a] for a in "xyz"], "itemsize": point_step})
-    points = np.frombuffer(data, dtype=dtype, count=count, offset=data_at)
-    return np.stack([points["x"], points["y"], points["z"]], axis=1).astype(np.float32), stamp
+    return _xyz_points(data, data_at, count, offsets, point_step, is_bigendian), sec + 1e-9 * nanosec
 
 
 def _poses_to_transforms(poses: np.ndarray) -> np.ndarray:
