@@ -264,6 +264,41 @@ def test_pack_from_another_drape_environment_is_refused(tmp_path):
     assert store.stats("anchor_0000_02") == {"frames": 12} and store.load("anchor_0000_01").max() == 1.0
 
 
+def test_pack_is_bit_exact_in_either_precision_and_reads_the_older_layout(tmp_path):
+    """Drapes that float32 holds exactly (newton's) are packed as float32, others as float64: both come back bit for
+    bit with their stats. A pack in the older layout (one entry per drape and field) still unpacks."""
+    from agentdress_ros.build.jobs import DrapeStore, read_drape_pack
+
+    plan_key = BuildConfig(**TINY).plan_key()
+    rng = np.random.default_rng(0)
+    single = rng.normal(size=(2, 5, 3)).astype(np.float32).astype(np.float64)
+    double = rng.normal(size=(2, 5, 3))
+    for drapes, stored in ((single, np.float32), (double, np.float64)):
+        source = DrapeStore(tmp_path / f"source_{stored.__name__}")
+        for k, vertices in enumerate(drapes):
+            source.save({"key": f"anchor_0000_{k:02d}", "vertices": vertices,
+                         "stats": {"frames": 10 + k, "converged": bool(k), "seconds": 1.5}})
+        pack = tmp_path / f"{stored.__name__}.npz"
+        assert source.pack(pack, plan_key) == 2
+        with np.load(pack) as data:
+            assert data["__vertices__"].dtype == stored
+        store = DrapeStore(tmp_path / f"store_{stored.__name__}")
+        assert store.unpack(pack, plan_key) == 2
+        for k, vertices in enumerate(drapes):
+            assert np.array_equal(store.load(f"anchor_0000_{k:02d}"), vertices)
+        assert store.stats("anchor_0000_01") == {"frames": 11, "converged": True, "seconds": 1.5}
+
+    older = tmp_path / "older.npz"
+    np.savez_compressed(older, __plan_key__=np.array(plan_key), **{"anchor_0000_00/vertices": double[0],
+                                                                     "anchor_0000_00/stat_frames": np.array(7)})
+    pack = read_drape_pack(older)
+    assert pack["environment"] is None and pack["drapes"]["anchor_0000_00"][1] == {"frames": 7}
+    assert np.array_equal(pack["drapes"]["anchor_0000_00"][0], double[0])
+    with pytest.raises(ValueError, match="not a drape pack"):
+        np.savez(tmp_path / "plain.npz", vertices=double[0])
+        read_drape_pack(tmp_path / "plain.npz")
+
+
 def test_engine_reproduces_training_drapes_through_the_residual_basis(tiny_build, body):
     """The engine adds the garment fitted to beta and skinned back to the residual shape model: at an anchor pose
     and a training shape it returns that drape up to the shape model's own fit error."""

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from agentdress_ros.body.kinematics import forward_kinematics, linear_blend_skinning
+from agentdress_ros.build.jobs import read_drape_pack
 from agentdress_ros.build.regressor import RegressorSettings, predict
 from agentdress_ros.build.santesteban import SantestebanSettings, inputs, train, unposed_anchor_drapes
 from agentdress_ros.build.sequences import load_sequence_pack
@@ -64,8 +65,7 @@ def test_unposed_anchor_drapes_skin_back_to_the_drapes(body, database):
     unposed = unposed_anchor_drapes(database, body, DRAPES)
     assert unposed.shape == (database.n_anchors, len(database.training_betas), database.n_vertices, 3)
     anchor, shape = 5, 9
-    with np.load(DRAPES) as data:
-        drape = data[f"anchor_{anchor:04d}_{shape:02d}/vertices"]
+    drape = read_drape_pack(DRAPES)["drapes"][f"anchor_{anchor:04d}_{shape:02d}"][0]
     transforms = np.empty((len(database.parents), 3, 4))
     forward_kinematics(canonical_poses(database.anchor_poses[anchor:anchor + 1])[0], np.zeros(3),
                        body.shape(database.training_betas[shape]).heads, database.parents, transforms)

@@ -437,7 +437,8 @@ def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | 
 
     partial: drape nothing, write a database from the drapes finished so far (fit_database(partial=True)).
     seed_drapes: a pack (DrapeStore.pack) of this build's finished drapes to start from, e.g. from another machine.
-    pack_drapes: afterwards, pack every finished drape into this file, so the build can continue elsewhere.
+    pack_drapes: pack every finished drape into this file, so the build can continue elsewhere (with `partial`:
+        the drapes finished so far, while another run of the same build goes on).
     """
     out = Path(out)
     work = out.with_name(out.name + ".work")
@@ -449,9 +450,9 @@ def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | 
         store.unpack(seed_drapes, config.plan_key(), key["environment"])
     if not partial:
         run_jobs(_jobs(config, plan), store, workers, scheduler, progress)
+    if pack_drapes:  # before fitting: the finished drapes travel even when too few anchors are complete to fit
+        store.pack(pack_drapes, config.plan_key(), key["environment"])
     command = command or "agentdress " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     db, report = fit_database(config, plan, store, body, command, partial=partial, environment=key["environment"])
     write_database(out, db)
-    if pack_drapes:
-        store.pack(pack_drapes, config.plan_key(), key["environment"])
     return report

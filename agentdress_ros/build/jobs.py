@@ -156,20 +156,20 @@ class DrapeStore:
     def pack(self, path, plan_key: str, environment: dict | None = None) -> int:
         """Write every finished drape (vertices and stats) into one compressed .npz, tagged with the build's plan
         key and drape environment (versions, garment template hash); returns the count. A build is resumable
-        across machines from this one file (`unpack`)."""
-        arrays = {"__plan_key__": np.array(plan_key)}
-        if environment is not None:
-            arrays["__environment__"] = np.array(json.dumps(environment, sort_keys=True))
+        across machines from this one file (`unpack`).
+
+        The drapes go in as one (K, V, 3) array, float32 when that holds them exactly (newton simulates in
+        float32, so its drapes always do) and float64 otherwise, beside their keys and a JSON table of their
+        stats: half the size of one entry per drape and field, and still bit-exact (`read_drape_pack`).
+        """
         files = sorted(self.folder.glob("*.npz"))
+        keys, vertices, stats = [], [], []
         for file in files:
             with np.load(file) as data:
-                for name in data.files:
-                    arrays[f"{file.stem}/{name}"] = data[name]
-        path = Path(path)
-        partial = path.with_name(path.name + ".partial")
-        with open(partial, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
-        os.replace(partial, path)
+                keys.append(file.stem)
+                vertices.append(data["vertices"])
+                stats.append({k[5:]: data[k].item() for k in data.files if k.startswith("stat_")})
+        write_drape_pack(path, keys, vertices, stats, plan_key, environment)
         return len(files)
 
     def unpack(self, path, plan_key: str, environment: dict | None = None) -> int:
@@ -179,33 +179,74 @@ class DrapeStore:
         another drape environment, naming what differs. A pack from before environments were recorded is taken
         as made under `environment`, with a warning that says so (the shipped packs are such packs).
         """
-        with np.load(path, allow_pickle=False) as data:
-            if str(data["__plan_key__"]) != plan_key:
-                raise ValueError(f"{path}: these drapes belong to a build with other parameters")
-            if environment is not None:
-                self._check_environment(path, data, environment)
-            names: dict = {}
-            for name in data.files:
-                key, _, field = name.partition("/")
-                if field:
-                    names.setdefault(key, []).append(field)
-            added = 0
-            for key, fields in names.items():
-                if self.has(key):
-                    continue
-                stats = {f[5:]: data[f"{key}/{f}"].item() for f in fields if f.startswith("stat_")}
-                self.save({"key": key, "vertices": data[f"{key}/vertices"], "stats": stats})
+        pack = read_drape_pack(path)
+        if pack["plan_key"] != plan_key:
+            raise ValueError(f"{path}: these drapes belong to a build with other parameters")
+        if environment is not None:
+            self._check_environment(path, pack["environment"], environment)
+        added = 0
+        for key, (vertices, stats) in pack["drapes"].items():
+            if not self.has(key):
+                self.save({"key": key, "vertices": vertices, "stats": stats})
                 added += 1
         return added
 
     @staticmethod
-    def _check_environment(path, data, environment: dict):
+    def _check_environment(path, stored: dict | None, environment: dict):
         wanted = json.loads(json.dumps(environment, sort_keys=True))
-        if "__environment__" not in data.files:
+        if stored is None:
             LOG.warning("%s: this pack records no drape environment (packed before it was part of the key); its "
                         "drapes are taken as made under this build's: %s", path, json.dumps(wanted, sort_keys=True))
             return
-        changes = key_changes(json.loads(str(data["__environment__"])), wanted)
+        changes = key_changes(stored, wanted)
         if changes:
             raise ValueError(f"{path}: these drapes were made under another drape environment, so they are not "
                              f"reused (pack -> this build): {'; '.join(changes)}")
+
+
+def write_drape_pack(path, keys: list, vertices: list, stats: list, plan_key: str, environment: dict | None = None):
+    """One compressed .npz of drapes (see DrapeStore.pack), written atomically. vertices: K arrays (V, 3)."""
+    arrays = {"__plan_key__": np.array(plan_key), "__keys__": np.array(keys, dtype=str),
+              "__stats__": np.array(json.dumps(stats))}
+    if environment is not None:
+        arrays["__environment__"] = np.array(json.dumps(environment, sort_keys=True))
+    if keys:
+        stacked = np.stack([np.asarray(v, dtype=np.float64) for v in vertices])
+        single = stacked.astype(np.float32)
+        arrays["__vertices__"] = single if np.array_equal(single, stacked) else stacked
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    with open(partial, "wb") as handle:
+        np.savez_compressed(handle, **arrays)
+    os.replace(partial, path)
+
+
+def read_drape_pack(path) -> dict:
+    """{"plan_key", "environment" (dict or None), "drapes": {job key: ((V, 3) float64, stats dict)}} of a pack,
+    in the stacked format DrapeStore.pack writes or the older one entry per drape and field."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{path}: not a readable drape pack ({error})") from None
+    with data:
+        if "__plan_key__" not in data.files:
+            raise ValueError(f"{path}: not a drape pack (no __plan_key__ entry)")
+        environment = json.loads(str(data["__environment__"])) if "__environment__" in data.files else None
+        drapes = {}
+        if "__keys__" in data.files:
+            keys = [str(k) for k in data["__keys__"]]
+            stats = json.loads(str(data["__stats__"]))
+            vertices = data["__vertices__"] if keys else np.zeros((0, 0, 3))
+            if len(vertices) != len(keys) or len(stats) != len(keys):
+                raise ValueError(f"{path}: {len(keys)} keys, {len(vertices)} drapes and {len(stats)} stats differ")
+            drapes = {k: (np.asarray(v, dtype=np.float64), s) for k, v, s in zip(keys, vertices, stats)}
+        else:
+            fields: dict = {}
+            for name in data.files:
+                key, _, field = name.partition("/")
+                if field:
+                    fields.setdefault(key, []).append(field)
+            for key, names in fields.items():
+                stats = {f[5:]: data[f"{key}/{f}"].item() for f in names if f.startswith("stat_")}
+                drapes[key] = (np.asarray(data[f"{key}/vertices"], dtype=np.float64), stats)
+        return {"plan_key": str(data["__plan_key__"]), "environment": environment, "drapes": drapes}

@@ -74,9 +74,10 @@ def unposed_anchor_drapes(db, body, drapes_path) -> np.ndarray:
 
 def _packed_drapes(path) -> dict:
     """{job key: (V, 3) float64} of a build's drape pack (DrapeStore.pack's file), the anchors' only."""
-    with np.load(path, allow_pickle=False) as data:
-        return {name.partition("/")[0]: np.asarray(data[name], dtype=np.float64) for name in data.files
-                if name.startswith("anchor_") and name.endswith("/vertices")}
+    from .jobs import read_drape_pack
+
+    return {key: vertices for key, (vertices, _) in read_drape_pack(path)["drapes"].items()
+            if key.startswith("anchor_")}
 
 
 def train(db, body, drapes_path, pack: dict, settings: SantestebanSettings, progress: bool = True):
