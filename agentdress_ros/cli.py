@@ -127,8 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--partial", action="store_true", help="drape nothing: write a database now from the "
                        "anchors whose drapes are all finished (the build continues when rerun without it)")
     build.add_argument("--seed-drapes", default=None, help="start from the finished drapes in this pack")
-    build.add_argument("--pack-drapes", default=None, help="afterwards, pack every finished drape into this file "
-                       "(one .npz) so the build can be continued on another machine with --seed-drapes")
+    build.add_argument("--pack-drapes", default=None, help="pack every finished drape into this file "
+                       "(one .npz) as the build goes (every 10 drapes) and at the end, so the build can be continued "
+                       "on another machine with --seed-drapes (the same file may be both)")
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     build.add_argument("--out", required=True, help="database file to write (.h5)")
     build.set_defaults(run=_build)

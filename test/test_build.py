@@ -30,7 +30,8 @@ TINY_ARGS = ["--garment", "tshirt", "--vertices", "700", "--anchors", "2", "--sh
 @pytest.fixture(scope="module")
 def tiny_build(tmp_path_factory):
     out = tmp_path_factory.mktemp("build") / "tiny.h5"
-    report = build_database(BuildConfig(**TINY), out, workers=2, progress=False, command="test tiny build")
+    report = build_database(BuildConfig(**TINY), out, workers=2, progress=False, command="test tiny build",
+                            pack_drapes=out.with_name("tiny.drapes.npz"))
     return out, report
 
 
@@ -215,9 +216,13 @@ def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(ti
     ones) is still accepted, with a warning that says so."""
     from agentdress_ros.build.jobs import DrapeStore
 
+    from agentdress_ros.build.jobs import read_drape_pack
+
     reference_path, _ = tiny_build
     work = reference_path.parent / (reference_path.name + ".work")
     config = BuildConfig(**TINY)
+    packed_as_built = read_drape_pack(reference_path.with_name("tiny.drapes.npz"))  # rewritten every 10 drapes
+    assert sorted(packed_as_built["drapes"]) == sorted(p.stem for p in (work / "drapes").glob("*.npz"))
     pack = tmp_path / "drapes.npz"
     assert DrapeStore(work / "drapes").pack(pack, config.plan_key()) == 2 * 5 + 1 + 1 + 2  # no environment
 

@@ -72,6 +72,9 @@ def _plan_key(fields: dict) -> str:
 
 
 #: Distributions whose versions change a drape: the body model (shapes, rig, skin weights) and the simulator.
+# A build or held-out set given a pack rewrites it after every this many drapes (a few seconds for 586 drapes),
+# besides at the end.
+PACK_EVERY = 10
 DRAPE_PACKAGES = {"anny": "anny", "newton": "newton", "warp": "warp-lang"}
 
 
@@ -257,10 +260,13 @@ def _load_or_make_plan(config: BuildConfig, body: AnnyBody, work: Path) -> tuple
     return plan, key
 
 
-def run_jobs(jobs, store: DrapeStore, workers: int = 2, scheduler: str | None = None, progress: bool = True):
+def run_jobs(jobs, store: DrapeStore, workers: int = 2, scheduler: str | None = None, progress: bool = True,
+             pack=None, pack_every: int = PACK_EVERY):
     """Drape every job not yet in the store, in parallel through Dask; results are saved as they complete.
 
     A job that warm-starts from another drape is sent out once that drape is in the store.
+    pack: callable() that packs the store, called after every `pack_every` saved drapes, so that work in a
+    tracked pack survives the loss of the work folder (a new checkout, a killed machine).
     """
     from tqdm import tqdm
 
@@ -280,9 +286,15 @@ def run_jobs(jobs, store: DrapeStore, workers: int = 2, scheduler: str | None = 
     def inputs(job):
         return store.load(job.warm_key) if job.warm_key else None
 
+    saved = 0
+
     def finished(result):
+        nonlocal saved
         store.save(result)
         bar.update()
+        saved += 1
+        if pack is not None and saved % pack_every == 0:
+            pack()
         return waiting.pop(result["key"], [])
 
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(pending), desc="drapes", unit="drape", disable=not progress)
@@ -437,8 +449,8 @@ def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | 
 
     partial: drape nothing, write a database from the drapes finished so far (fit_database(partial=True)).
     seed_drapes: a pack (DrapeStore.pack) of this build's finished drapes to start from, e.g. from another machine.
-    pack_drapes: pack every finished drape into this file, so the build can continue elsewhere (with `partial`:
-        the drapes finished so far, while another run of the same build goes on).
+    pack_drapes: pack every finished drape into this file, every PACK_EVERY drapes and at the end, so the build can
+        continue elsewhere (with `partial`: the drapes finished so far, while another run of the same build goes on).
     """
     out = Path(out)
     work = out.with_name(out.name + ".work")
@@ -446,12 +458,17 @@ def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | 
     body = AnnyBody()
     plan, key = _load_or_make_plan(config, body, work)
     store = DrapeStore(work / "drapes")
-    if seed_drapes:
+    # a build that packs into the file it was seeded from starts that file the first time
+    first_pack = pack_drapes and seed_drapes and Path(seed_drapes) == Path(pack_drapes) and not Path(seed_drapes).exists()
+    if seed_drapes and not first_pack:
         store.unpack(seed_drapes, config.plan_key(), key["environment"])
-    if not partial:
-        run_jobs(_jobs(config, plan), store, workers, scheduler, progress)
-    if pack_drapes:  # before fitting: the finished drapes travel even when too few anchors are complete to fit
+    def pack():
         store.pack(pack_drapes, config.plan_key(), key["environment"])
+
+    if not partial:
+        run_jobs(_jobs(config, plan), store, workers, scheduler, progress, pack=pack if pack_drapes else None)
+    if pack_drapes:  # before fitting: the finished drapes travel even when too few anchors are complete to fit
+        pack()
     command = command or "agentdress " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     db, report = fit_database(config, plan, store, body, command, partial=partial, environment=key["environment"])
     write_database(out, db)

@@ -132,8 +132,8 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
                       pack=None) -> HeldOutSet:
     """Poses, shapes and ground-truth drapes of the test set (drapes from `cache` when present, else simulated).
 
-    pack: a file of packed drapes (DrapeStore.pack) of this test set: read first when it exists, rewritten after,
-    so the ground truth can travel with the report instead of being simulated again.
+    pack: a file of packed drapes (DrapeStore.pack) of this test set: read first when it exists, rewritten as the
+    drapes finish and after, so the ground truth can travel with the report instead of being simulated again.
     """
     from ..build.builder import run_jobs
     from ..build.jobs import DrapeJob, DrapeStore
@@ -175,9 +175,11 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
     store = DrapeStore(cache / "drapes")
     if pack is not None and Path(pack).is_file():
         store.unpack(pack, key)
-    run_jobs(jobs, store, workers=workers, progress=progress)
     if pack is not None:
         Path(pack).parent.mkdir(parents=True, exist_ok=True)
+    run_jobs(jobs, store, workers=workers, progress=progress,
+             pack=None if pack is None else lambda: store.pack(pack, key))
+    if pack is not None:
         store.pack(pack, key)
     drapes = np.stack([np.stack([store.load(f"test_{p:04d}_{k:02d}") for k in range(len(betas))])
                        for p in range(len(poses))])
