@@ -10,8 +10,8 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 from sensor_msgs.msg import JointState, PointCloud2, PointField  # noqa: E402
 
 from agentdress_ros.motion.joint_names import JOINT_NAMES  # noqa: E402
-from agentdress_ros.ros.messages import (JointStateReader, SerializedCloud, cloud_to_vertices,  # noqa: E402
-                                         serialized_cloud_to_vertices)
+from agentdress_ros.ros.messages import (JointStateReader, SerializedCloud, SerializedJointState,  # noqa: E402
+                                         cloud_to_vertices, serialized_cloud_to_vertices)
 
 
 def _joint_state(names, positions, frame_id="world", sec=12, nanosec=345, velocity=()):
@@ -113,6 +113,26 @@ def test_joint_state_reader_matches_the_deserializer_on_every_kind_of_message():
             assert names == list(msg.name)
             assert np.array_equal(positions, np.asarray(msg.position), equal_nan=True)
             assert stamp_ns == msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+@pytest.mark.parametrize("frame_id, names", [("world", list(JOINT_NAMES)), ("wörld", ["Hüfte", "a", "bc"]),
+                                              ("", ["x"])])
+def test_serialized_joint_state_is_what_the_serializer_makes_and_reads_back(frame_id, names):
+    """The crowd driver's JointState bytes are rclpy's serialization of the same message, frame after frame, and
+    the node's reader takes them on its fast path."""
+    writer, reader = SerializedJointState(frame_id, names), JointStateReader()
+    rng = np.random.default_rng(1)
+    for sec, nanosec in ((0, 0), (12, 345), (1_700_000_000, 999_999_999)):
+        positions = rng.normal(size=len(names))
+        raw = writer.set(positions, sec * 1_000_000_000 + nanosec)
+        assert len(raw) == len(serialize_message(_joint_state(names, positions, frame_id, sec, nanosec)))
+        msg = deserialize_message(raw, JointState)  # bytes compare only up to CDR padding, which rclpy leaves unset
+        assert (msg.header.frame_id, list(msg.name), msg.header.stamp.sec, msg.header.stamp.nanosec) == (
+            frame_id, names, sec, nanosec)
+        assert np.array_equal(msg.position, positions) and not len(msg.velocity) and not len(msg.effort)
+        read_names, read_positions, stamp_ns = reader.read(raw)
+        assert read_names == names and np.array_equal(read_positions, positions)
+        assert stamp_ns == sec * 1_000_000_000 + nanosec
 
 
 def test_serialized_bones_carry_the_skinning_transforms_and_reproduce_the_body_frame():

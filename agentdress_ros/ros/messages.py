@@ -116,6 +116,45 @@ def _align(offset: int, size: int) -> int:
     return 4 + -(-(offset - 4) // size) * size
 
 
+def _joint_state_positions(frame_id: str, names) -> tuple[int, int]:
+    """(offset of the position count, offset of the first position) in a serialized JointState, walked as CDR lays
+    out its strings (length including the NUL, then the bytes)."""
+    offset = 12 + 4 + len(frame_id.encode()) + 1
+    offset = _align(offset, 4) + 4
+    for name in names:
+        offset = _align(offset, 4) + 4 + len(name.encode()) + 1
+    offset = _align(offset, 4)
+    return offset, _align(offset + 4, 8)
+
+
+class SerializedJointState:
+    """JointStates of a fixed frame_id and joint names (no velocities or efforts) kept serialized (CDR): each
+    message writes its stamp and positions into the bytes, which `Publisher.publish` takes as they are. The
+    crowd driver sends thousands a second, and rclpy converts a message object's 96 names on every publish. The
+    bytes are what `serialize_message` makes of the same message, up to CDR padding (which rclpy leaves unset)."""
+
+    def __init__(self, frame_id: str, names):
+        from rclpy.serialization import serialize_message
+        from sensor_msgs.msg import JointState
+
+        msg = JointState()
+        msg.header.frame_id, msg.name, msg.position = frame_id, list(names), [0.0] * len(names)
+        self._buffer = bytearray(serialize_message(msg))
+        self._endian = "<" if self._buffer[1] == 1 else ">"
+        count_offset, start = _joint_state_positions(frame_id, msg.name)
+        count = struct.unpack_from(self._endian + "I", self._buffer, count_offset)[0]
+        if count != len(names) or len(self._buffer) < start + 8 * count:
+            raise RuntimeError(f"unexpected JointState serialization: {count} positions at {start}")
+        self._positions = np.frombuffer(self._buffer, dtype=self._endian + "f8", count=count, offset=start)
+
+    def set(self, positions, stamp_ns: int) -> bytes:
+        """The serialized message with positions (N,) and the stamp (ns)."""
+        np.copyto(self._positions, positions, casting="same_kind")
+        struct.pack_into(self._endian + "iI", self._buffer, 4, int(stamp_ns // 1_000_000_000),
+                         int(stamp_ns % 1_000_000_000))
+        return bytes(self._buffer)
+
+
 class JointStateReader:
     """Names, positions and stamp of serialized JointStates (CDR bytes, as a raw subscription hands them over)
     from one sender, parsed without building the message: a sender repeats its frame_id and joint names, so once
@@ -146,13 +185,7 @@ class JointStateReader:
 
         msg = deserialize_message(raw, JointState)
         names, positions = list(msg.name), np.asarray(msg.position, dtype=np.float64)
-        # Where the position count sits, walked as CDR lays out the strings (length incl. the NUL, then bytes).
-        offset = 12 + 4 + len(msg.header.frame_id.encode()) + 1
-        offset = _align(offset, 4) + 4
-        for name in names:
-            offset = _align(offset, 4) + 4 + len(name.encode()) + 1
-        offset = _align(offset, 4)
-        start = _align(offset + 4, 8)
+        offset, start = _joint_state_positions(msg.header.frame_id, names)
         known = len(raw) >= start + 8 * len(positions) and len(names) == len(positions) and np.array_equal(
             np.frombuffer(raw, dtype=endian + "f8", count=len(positions), offset=start).view(np.uint64),
             positions.view(np.uint64))
