@@ -154,6 +154,41 @@ def test_bad_inputs_are_rejected_before_simulating():
         drape(vertices, np.array([[0, 1, 2]]), vertices, np.array([[0, 1, 2]]), pinned=[3])
 
 
+@needs_newton
+@pytest.mark.parametrize("substeps", [16, 17, 40])
+def test_a_frame_of_any_substep_count_falls_as_implicit_euler_does(substeps):
+    """A flat sheet far from its collider falls freely. Implicit Euler from rest moves it g dt^2 n (n + 1) / 2 in n
+    steps of dt = T / n, so a frame of T with n substeps drops it g T^2 (n + 1) / (2 n): the same frame at any
+    count, odd ones included (whose newest state sits in the other buffer)."""
+    from agentdress_ros.sim.cloth import ClothSim
+
+    grid = np.stack(np.meshgrid(np.linspace(0.0, 0.2, 5), np.linspace(0.0, 0.2, 5)), axis=-1).reshape(-1, 2)
+    sheet = np.column_stack([grid, np.full(len(grid), 0.02)])  # near 0, where float32 steps are fine
+    faces = np.array([[r * 5 + c, r * 5 + c + 1, (r + 1) * 5 + c + 1] for r in range(4) for c in range(4)]
+                     + [[r * 5 + c, (r + 1) * 5 + c + 1, (r + 1) * 5 + c] for r in range(4) for c in range(4)])
+    box = np.array([[5, 5, 0], [6, 5, 0], [5, 6, 0], [5, 5, 1.0]])  # a tet 5 m away: no contact
+    box_faces = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    settings = DrapeSettings(velocity_retention=1.0, graph=False)
+    sim = ClothSim(sheet, faces, box, box_faces, settings)
+    dropped = sheet[:, 2] - sim.frame(substeps=substeps)[:, 2]
+    expected = -settings.gravity * sim.frame_dt ** 2 * (substeps + 1) / (2 * substeps)
+    np.testing.assert_allclose(dropped, expected, rtol=1e-2)  # float32 steps; a wrong buffer is 11 % off at 17
+    second = sheet[:, 2] - sim.frame()[:, 2]  # then a frame at the default count continues from the newest state
+    assert np.all(second > dropped)
+
+
+def test_fast_frames_get_the_substeps_that_keep_the_body_within_one_step():
+    from agentdress_ros.sim.sequence import SequenceSettings
+
+    body = np.zeros((4, 3))
+    moved = body.copy()
+    moved[2] = (0.0, 0.06, 0.08)  # one vertex moves 10 cm in the frame
+    assert SequenceSettings().substeps(body, moved) == DrapeSettings().substeps  # off by default
+    assert SequenceSettings(max_body_step=0.004).substeps(body, moved) == 25
+    assert SequenceSettings(max_body_step=0.004).substeps(body, body + 0.001) == DrapeSettings().substeps
+    assert "max_body_step" not in SequenceSettings().key() and "max_body_step" in SequenceSettings(max_body_step=0.03).key()
+
+
 @pytest.fixture(scope="module")
 def arms_down(body):
     """A 400-vertex T-shirt and an arms-down pose from a training clip (08_04, slow walk) at beta0:

@@ -172,20 +172,24 @@ class ClothSim:
             self.pipeline.collide(a, self.contacts)
         self.solver.step(a, b, self.control, self.contacts, dt)
 
-    def _finish_frame(self) -> None:
-        if self.settings.substeps % 2:  # an odd count leaves the newest state in the second slot
+    def _finish_frame(self, substeps: int) -> None:
+        if substeps % 2:  # an odd count leaves the newest state in the second slot
             self.states.reverse()
 
-    def frame(self, body_to=None, pinned_to=None) -> np.ndarray:
+    def frame(self, body_to=None, pinned_to=None, substeps: int | None = None) -> np.ndarray:
         """Advance one frame (1 / fps) and return the positions (V, 3) float64.
 
         body_to (N, 3): the body surface at the end of the frame; every substep moves it linearly from where it is,
         with the matching velocity. pinned_to (P, 3): the pinned vertices at the end of the frame, likewise.
-        None keeps the body (or the pinned vertices) still.
+        None keeps the body (or the pinned vertices) still. substeps: this frame's solver steps (default
+        settings.substeps), more where the body moves fast, so that no step carries it through the cloth.
         """
         s = self.settings
-        dt = self.frame_dt / s.substeps
-        moving = body_to is not None or pinned_to is not None
+        substeps = s.substeps if substeps is None else int(substeps)
+        if substeps < 1:
+            raise ValueError(f"substeps must be >= 1, got {substeps}")
+        dt = self.frame_dt / substeps
+        moving = body_to is not None or pinned_to is not None or substeps != s.substeps
         if not moving and self._graph is not None:
             self._wp.capture_launch(self._graph)
             return self.positions()
@@ -198,8 +202,8 @@ class ClothSim:
         if pinned_to is not None:
             pinned_to = np.asarray(pinned_to, dtype=np.float64).reshape(pinned_from.shape)
         with self._wp.ScopedDevice(self.device):
-            for substep in range(s.substeps):
-                alpha = (substep + 1) / s.substeps
+            for substep in range(substeps):
+                alpha = (substep + 1) / substeps
                 if body_to is not None:
                     self._write_body(body_from + alpha * (body_to - body_from), body_velocity)
                 if pinned_to is not None:
@@ -210,7 +214,7 @@ class ClothSim:
                 self.body_vertices = body_to.copy()
             if pinned_to is not None:
                 self.pinned_positions = pinned_to.copy()
-        self._finish_frame()
+        self._finish_frame(substeps)
         if not moving:
             self._capture_still_frame()
         return self.positions()

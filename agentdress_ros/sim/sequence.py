@@ -32,16 +32,30 @@ class SequenceSettings:
     """fps: mocap frames per second after resampling (30). chunk_frames: mocap frames per checkpoint (30).
     ramp_frames: simulation frames carrying the body from rest into the first pose (30). settle_frames: most
     frames settling there before the clip starts (120). drape: the cloth and solver settings; its
-    velocity_retention applies only while settling (the clip itself runs without artificial drag)."""
+    velocity_retention applies only while settling (the clip itself runs without artificial drag).
+    max_body_step: m; a simulation frame in which some body vertex would move farther than this in one substep
+    gets as many more substeps as keep it within (0: always drape.substeps). A fast limb otherwise passes through
+    the cloth's contact layer in one step (at 16 substeps and 60 fps, 9 m/s is 9 mm a step)."""
 
     fps: float = 30.0
     chunk_frames: int = 30
     ramp_frames: int = 30
     settle_frames: int = 120
     drape: DrapeSettings = field(default_factory=DrapeSettings)
+    max_body_step: float = 0.0
 
     def key(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
+        fields = asdict(self)
+        if not self.max_body_step:  # sequences from before the knob keep their key
+            fields.pop("max_body_step")
+        return json.dumps(fields, sort_keys=True)
+
+    def substeps(self, body_from, body_to) -> int:
+        """Substeps for one simulation frame in which the body surface moves from body_from to body_to (N, 3)."""
+        if not self.max_body_step:
+            return self.drape.substeps
+        step = float(np.sqrt(np.max(np.einsum("ij,ij->i", body_to - body_from, body_to - body_from))))
+        return max(self.drape.substeps, int(np.ceil(step / self.max_body_step - 1e-9)))  # 1e-9: not 26 for 25.0000001
 
 
 def resample(motion, fps: float):
@@ -73,7 +87,8 @@ def simulate_sequence(motion, garment, beta, folder, settings: SequenceSettings 
                       max_chunks: int | None = None, progress: bool = True) -> dict:
     """Simulate `garment` on the body of shape `beta` (6,) along `motion` (a skeleton.Motion retargeted to that
     body); writes chunks into `folder` and returns {"frames", "chunks", "seconds", "max_cloth_speed",
-    "max_body_speed"} over the chunks computed in this call (max_chunks stops early, for tests)."""
+    "max_body_speed", "frames_more_substeps", "max_substeps"} over the chunks computed in this call (max_chunks
+    stops early, for tests)."""
     from tqdm import tqdm
 
     from ..body import AnnyBody
@@ -98,7 +113,8 @@ def simulate_sequence(motion, garment, beta, folder, settings: SequenceSettings 
     pin = garment.pinned
     sim_per_frame = max(1, int(round(s.drape.fps / s.fps)))
     start = time.perf_counter()
-    stats = {"frames": 0, "chunks": 0, "max_cloth_speed": 0.0, "max_body_speed": 0.0}
+    stats = {"frames": 0, "chunks": 0, "max_cloth_speed": 0.0, "max_body_speed": 0.0, "frames_more_substeps": 0,
+             "max_substeps": s.drape.substeps}
     if done >= n_chunks:
         return {**stats, "seconds": 0.0}
 
@@ -146,10 +162,13 @@ def simulate_sequence(motion, garment, beta, folder, settings: SequenceSettings 
                 positions[i] = sim.positions()
                 continue
             before = sim.positions()
+            substeps = s.substeps(last_body, last_body + (bodies[i] - last_body) / sim_per_frame)
+            stats["frames_more_substeps"] += substeps > s.drape.substeps
+            stats["max_substeps"] = max(stats["max_substeps"], substeps)
             for k in range(1, sim_per_frame + 1):
                 alpha = k / sim_per_frame
                 current = sim.frame(body_to=last_body + alpha * (bodies[i] - last_body),
-                                    pinned_to=last_pins + alpha * (garments[i][pin] - last_pins))
+                                    pinned_to=last_pins + alpha * (garments[i][pin] - last_pins), substeps=substeps)
             if not np.isfinite(current).all():
                 raise RuntimeError(f"{motion.name}: the cloth diverged at frame {frame}")
             positions[i] = current
