@@ -71,10 +71,10 @@ def _plan_key(fields: dict) -> str:
     return json.dumps({k: v for k, v in fields.items() if k not in FIT_ONLY}, sort_keys=True)
 
 
-#: Distributions whose versions change a drape: the body model (shapes, rig, skin weights) and the simulator.
 # A build or held-out set given a pack rewrites it after every this many drapes (a few seconds for 586 drapes),
 # besides at the end.
 PACK_EVERY = 10
+#: Distributions whose versions change a drape: the body model (shapes, rig, skin weights) and the simulator.
 DRAPE_PACKAGES = {"anny": "anny", "newton": "newton", "warp": "warp-lang"}
 
 
@@ -459,9 +459,11 @@ def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | 
     plan, key = _load_or_make_plan(config, body, work)
     store = DrapeStore(work / "drapes")
     # a build that packs into the file it was seeded from starts that file the first time
-    first_pack = pack_drapes and seed_drapes and Path(seed_drapes) == Path(pack_drapes) and not Path(seed_drapes).exists()
+    first_pack = bool(pack_drapes and seed_drapes and Path(seed_drapes) == Path(pack_drapes)
+                      and not Path(seed_drapes).exists())
     if seed_drapes and not first_pack:
         store.unpack(seed_drapes, config.plan_key(), key["environment"])
+
     def pack():
         store.pack(pack_drapes, config.plan_key(), key["environment"])
 
