@@ -151,7 +151,7 @@ class DrapeStore:
 
     def stats(self, key: str) -> dict:
         with np.load(self.path(key)) as data:
-            return {k[5:]: data[k].item() for k in data.files if k.startswith("stat_")}
+            return _stats_of(data)
 
     def pack(self, path, plan_key: str, environment: dict | None = None) -> int:
         """Write every finished drape (vertices and stats) into one compressed .npz, tagged with the build's plan
@@ -168,7 +168,7 @@ class DrapeStore:
             with np.load(file) as data:
                 keys.append(file.stem)
                 vertices.append(data["vertices"])
-                stats.append({k[5:]: data[k].item() for k in data.files if k.startswith("stat_")})
+                stats.append(_stats_of(data))
         write_drape_pack(path, keys, vertices, stats, plan_key, environment)
         return len(files)
 
@@ -202,6 +202,11 @@ class DrapeStore:
         if changes:
             raise ValueError(f"{path}: these drapes were made under another drape environment, so they are not "
                              f"reused (pack -> this build): {'; '.join(changes)}")
+
+
+def _stats_of(data) -> dict:
+    """The stats of one stored drape (its `stat_<name>` entries) as plain Python values."""
+    return {k[5:]: data[k].item() for k in data.files if k.startswith("stat_")}
 
 
 def write_drape_pack(path, keys: list, vertices: list, stats: list, plan_key: str, environment: dict | None = None):
