@@ -4,7 +4,8 @@ For each N the node runs as a child process in crowd mode (`agents: [agent_000, 
 shipped databases, examples pose model), pinned to one core (`--node-cores`; its DDS threads share that core) while
 the pose publisher and this process run on the others; a second child process (`agentdress demo --agents N`)
 publishes every agent's JointState at `--pose-rate` and, in the spread run, a fixed viewer pose; this process
-listens to the nearest agent's T-shirt cloud and to ~/status. Two runs per N:
+listens to ~/status and to the T-shirt cloud of the agent nearest the viewer in view (the one each status names:
+the agents walk). Two runs per N:
   near    every agent within 3 m, LOD off (lod.enabled false): every agent fully dressed on every new pose
   spread  agents walking about a 30 m plaza, a viewer at its edge looking in, LOD, culling and the 8 ms budget on
   cpu     no DDS: the scene in this process, every agent given a new pose every tick and dressed at one level, its
@@ -37,6 +38,12 @@ __all__ = ["bench_crowd", "main"]
 ROOT = Path(__file__).resolve().parents[2]
 DATABASES = {"tshirt": ROOT / "data" / "tshirt_default.h5", "trousers": ROOT / "data" / "trousers_default.h5"}
 VIEWER = (-16.0, 0.0, 1.6, 0.0)  # x, y, z, yaw: at the plaza's edge, looking along +x into it
+
+
+def _nearest_in_view(detail: dict):
+    """The name of the agent nearest the viewer in view in a status's agents_detail (None when none is)."""
+    seen = [n for n in detail if detail[n]["visible"]]
+    return min(seen, key=lambda n: (detail[n]["distance"], n)) if seen else None
 
 
 def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: float, budget_ms: float,
@@ -96,16 +103,36 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
                 raise RuntimeError("the node did not finish fitting the agents' shapes within 600 s")
             fitted_after = time.monotonic() - started
             spin_until(executor, lambda: False, warmup)
-            detail = state["status"][-1]["crowd"]["agents_detail"]
-            nearest = min(detail, key=lambda n: (not detail[n]["visible"], detail[n]["distance"], n))  # in view
-            client.create_subscription(PointCloud2, f"/agentdress_node/{nearest}/tshirt/points", on_cloud,
-                                       QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
-                                                  reliability=ReliabilityPolicy.BEST_EFFORT))
-            # the same agent's poses as they reach this process: the share of the latency that is transport
+            # The nearest agent in view changes as the agents walk about: every status names it, and its clouds (and
+            # poses) are the ones measured, through a subscription made the first time an agent is the nearest.
             pose_state = {"latency": [], "seen": set(), "measuring": False}
-            client.create_subscription(JointState, f"/{nearest}/joint_states", latency_recorder(pose_state),
-                                       QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
-                                                  reliability=ReliabilityPolicy.BEST_EFFORT))
+            follow = {"nearest": None, "agents": [], "subscribed": set()}
+            qos = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
+
+            def only_nearest(agent, callback):
+                return lambda msg: callback(msg) if follow["nearest"] == agent else None
+
+            def follow_nearest(status):
+                detail = status["crowd"]["agents_detail"]
+                agent = _nearest_in_view(detail)
+                if agent is None:
+                    return
+                if state["measuring"] and agent not in follow["agents"]:
+                    follow["agents"].append(agent)
+                if agent not in follow["subscribed"]:
+                    follow["subscribed"].add(agent)
+                    client.create_subscription(PointCloud2, f"/agentdress_node/{agent}/tshirt/points",
+                                               only_nearest(agent, on_cloud), qos)
+                    # the same agent's poses as they reach this process: the share of the latency that is transport
+                    client.create_subscription(JointState, f"/{agent}/joint_states",
+                                               only_nearest(agent, latency_recorder(pose_state)), qos)
+                follow["nearest"] = agent
+
+            follow_nearest(state["status"][-1])
+            nearest = follow["nearest"]
+            follow["agents"] = [nearest]
+            client.create_subscription(String, "/agentdress_node/status",
+                                       lambda m: follow_nearest(json.loads(m.data)), 10)
             spin_until(executor, lambda: False, 3.0)  # discovery of the new subscription
             status0 = state["status"][-1]
             cpu0, wall0 = _proc_cpu_seconds(node.pid), time.monotonic()
@@ -136,7 +163,8 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
             "clouds_per_s_per_agent": round((frames - frames0) / wall / count, 2),
             "tiers": tiers,
             "cpu_percent": round(100.0 * cpu / wall, 1), "rss_mb": round(rss, 1),
-            "nearest_agent": nearest, "nearest_latency_ms": percentiles(state["latency"], digits=3),
+            "nearest_agent": nearest, "nearest_agents": follow["agents"],
+            "nearest_latency_ms": percentiles(state["latency"], digits=3),
             "nearest_pose_transport_ms": percentiles(pose_state["latency"], digits=3),
             "shapes_fitted_after_s": round(fitted_after, 1),
             "refits_while_measuring": crowd.get("refits", 0) - crowd0.get("refits", 0),

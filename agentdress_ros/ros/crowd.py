@@ -287,23 +287,20 @@ class Crowd:
         return _take_all(entity["subs"][which], entity["handles"][which])
 
     def poll(self):
-        """Tick, before the scene decides: take every agent's waiting poses, serialized. They are parsed only when
-        the agent is dressed (`_parse_pending`, from the scene) or, for the others, every SHAPE_POLL_TICKS-th tick
-        so that distances and visibility stay current; that tick also looks at the agent's body shapes. Poses of
-        an agent with an arrival reader are dropped here: that reader has them."""
-        counts = self.node.stats.counts
+        """Tick, before the scene decides: take the waiting poses, serialized, of every agent the tick may dress.
+        They are parsed only when the agent is dressed (`_parse_pending`, from the scene) or, for every agent,
+        every SHAPE_POLL_TICKS-th tick so that distances and visibility stay current; that tick also looks at the
+        agent's body shapes."""
         turn = self._shape_turn % SHAPE_POLL_TICKS
+        agents = self.scene.agents
         for i, (name, entity) in enumerate(sorted(self.entities.items())):
-            raw = self._take(entity, 0)
-            if raw and name not in self.arrivals:
-                counts["joint_states_received"] += len(raw)
-                pending = entity["pending"]
-                pending.extend(raw)
-                del pending[:-MAX_PENDING]
-                agent = self.scene.agents.get(name)
-                if agent is not None:
-                    agent.dirty = True  # a pose to dress (parsed as it is dressed)
-            if i % SHAPE_POLL_TICKS == turn:
+            agent = agents.get(name)
+            shape_turn = i % SHAPE_POLL_TICKS == turn
+            # an agent the next tick will not dress (culled, or not due at its tier's rate) leaves its poses in
+            # the keep-last queue: taking them is most of the tick's fixed cost in a large crowd
+            if shape_turn or agent is None or self.scene.needs_input(agent):
+                self._take_poses(name, entity, agent)
+            if shape_turn:
                 if entity["pending"]:
                     self._parse_pending(self.scene.agents.get(name))
                 shape = self.node._guarded(f"{name}/body_shape", self._on_shape)
@@ -311,11 +308,27 @@ class Crowd:
                     shape(name, msg)
         self._shape_turn += 1
 
+    def _take_poses(self, name: str, entity: dict, agent) -> None:
+        """The agent's waiting JointStates (serialized) into its pending list; a pose to dress marks it dirty. Poses
+        of an agent with an arrival reader are dropped: that reader has them."""
+        raw = self._take(entity, 0)
+        if raw and name not in self.arrivals:
+            self.node.stats.counts["joint_states_received"] += len(raw)
+            pending = entity["pending"]
+            pending.extend(raw)
+            del pending[:-MAX_PENDING]
+            if agent is not None:
+                agent.dirty = True  # a pose to dress (parsed as it is dressed)
+
     def _parse_pending(self, agent):
         """The agent's waiting serialized poses into its pose: the newest, when it names every joint (the older
-        ones could not change the result), else all of them oldest first (partial JointStates add up)."""
+        ones could not change the result), else all of them oldest first (partial JointStates add up). Poses
+        still in its queue (left there by `poll`) are taken first."""
         entity = None if agent is None else self.entities.get(agent.name)
-        if entity is None or not entity["pending"]:
+        if entity is None:
+            return
+        self._take_poses(agent.name, entity, agent)
+        if not entity["pending"]:
             return
         pending, entity["pending"] = entity["pending"], []
         accept = self.node._guarded(f"{agent.name}/joint_states", self._on_joint_state)

@@ -35,6 +35,12 @@ HIPS_HEIGHT = 0.9
 DEFAULT_COST_MS = 0.2  # estimate for a level never measured yet
 INTERLEAVE_MS = 1.0  # the between_agents hook runs at most this often within a tick
 MIN_DRESSING_MS = 0.01  # dressing budget left when the fixed costs alone fill the tick (near agents still dressed)
+# The budget holds the tick's high quantile, not its mean: each tick records how far it ran past its plan (the
+# fixed costs so far, the decisions' estimates, the reserves), and the next ticks keep that quantile of the recent
+# misses free. It absorbs what no estimate sees coming: bursts of arrivals answered between agents, a cost spike.
+MARGIN_WINDOW = 180  # ticks of misses remembered (2 s at 90 Hz)
+MARGIN_QUANTILE = 95.0
+MARGIN_EVERY = 10  # ticks between updates of the margin
 
 
 @dataclass(frozen=True)
@@ -214,6 +220,8 @@ class Scene:
         self.refits = 0  # shape refits done by the worker (a repeated shape is not one)
         self.after_ms = 0.0  # smoothed caller's work after each tick (note_after_ms), reserved from the budget
         self.between_ms = 0.0  # smoothed work of the between_agents hook per tick (arrivals answered), reserved too
+        self.margin_ms = 0.0  # MARGIN_QUANTILE of the recent ticks' misses (time past their plan), reserved too
+        self._misses: deque = deque(maxlen=MARGIN_WINDOW)
         self.level_cost: dict[int, float] = {}
         self.stats = TierStats([t.name for t in config.lod.tiers])
         self.on_error = on_error or (lambda message: None)
@@ -388,6 +396,7 @@ class Scene:
             candidate = Candidate(agent.name, agent.distance, agent.tier, costs, agent.waited)
             candidates.append(candidate)
             by_key[agent.name] = agent
+        planned = 1e3 * (time.perf_counter() - started) + self.between_ms  # so far, and the hook's reserve
         decisions = schedule(candidates, self._dressing_budget(started), config.protect_tiers, config.max_wait,
                              config.near_wait)
         decisions.sort(key=lambda d: by_key[d.key].distance)
@@ -419,18 +428,29 @@ class Scene:
         a = self.config.cost_smoothing
         self.between_ms = (1 - a) * self.between_ms + a * hook_ms
         self.ticks += 1
-        report.ms = 1e3 * (time.perf_counter() - start)
+        end = time.perf_counter()
+        report.ms = 1e3 * (end - start)
+        if decisions:
+            self._note_miss(1e3 * (end - started) - planned - report.estimate_ms)
         return report
 
+    def _note_miss(self, ms: float):
+        """A dressing tick ran `ms` past its plan (negative: under it); every MARGIN_EVERY ticks the margin becomes
+        the MARGIN_QUANTILE of the recent misses, at most half the budget."""
+        self._misses.append(ms)
+        if self.ticks % MARGIN_EVERY == 0 and len(self._misses) >= MARGIN_EVERY:
+            quantile = float(np.percentile(np.fromiter(self._misses, dtype=np.float64), MARGIN_QUANTILE))
+            self.margin_ms = min(max(0.0, quantile), 0.5 * max(self.config.budget_ms, 0.0))
+
     def _dressing_budget(self, started: float) -> float:
-        """ms left for dressing this tick: budget_ms less the tick's fixed costs (spent so far, expected after) and
-        the arrivals the between_agents hook is expected to answer; never 0 (which the scheduler reads as no budget)
+        """ms left for dressing this tick: budget_ms less the tick's fixed costs (spent so far, expected after), the
+        arrivals the between_agents hook is expected to answer and the margin of recent misses; never 0 (which the scheduler reads as no budget)
         while a budget is set."""
         budget = self.config.budget_ms
         if budget <= 0:
             return budget
         spent = 1e3 * (time.perf_counter() - started)
-        return max(MIN_DRESSING_MS, budget - spent - self.after_ms - self.between_ms)
+        return max(MIN_DRESSING_MS, budget - spent - self.after_ms - self.between_ms - self.margin_ms)
 
     def note_after_ms(self, ms: float):
         """The caller's work after `tick` returned (publishing bookkeeping, subscriptions): smoothed into what the
@@ -456,6 +476,16 @@ class Scene:
         agent.last_dressed = time.monotonic()
         return ms
 
+    def needs_input(self, agent: Agent) -> bool:
+        """Whether the next tick may dress `agent`, as far as the last one knows: in view and due at its tier's
+        rate (an agent never placed yet, or any agent without levels of detail, always is)."""
+        if agent.tier is None or self.viewer is None or not self.config.lod_enabled:
+            return True
+        if not agent.visible:
+            return False
+        every = self.config.lod.tiers[agent.tier].every
+        return every <= 1 or agent.waited > 0 or (self.ticks + agent.slot) % every == 0
+
     def dress_now(self, name: str, publish=None, now_ns: int = 0) -> bool:
         """Dress agent `name` right away at its tier's level if it is in view (a pose that just arrived at one of
         the agents nearest the viewer, answered without waiting for the tick). Returns whether it was dressed."""
@@ -469,6 +499,6 @@ class Scene:
 
     def status(self) -> dict:
         return {"agents": len(self.agents), "tiers": self.stats.as_dict(),
-                "budget_ms": self.config.budget_ms, "lod": self.config.lod_enabled,
+                "budget_ms": self.config.budget_ms, "margin_ms": round(self.margin_ms, 3), "lod": self.config.lod_enabled,
                 "viewer": None if self.viewer is None else [round(float(v), 3) for v in self.viewer.position],
                 "shared_garments": len(self.library), "refits": self.refits}
