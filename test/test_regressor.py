@@ -14,6 +14,7 @@ from agentdress_ros.build.regressor import (RegressorSettings, TrainingData, cli
 from agentdress_ros.build.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
 from agentdress_ros.engine.engine import permute_vertices, select_database
+from agentdress_ros.engine.pose_models import INPUT_CLIP
 
 ROOT = Path(__file__).resolve().parents[1]
 DATABASE = ROOT / "data" / "tshirt_default.h5"
@@ -43,6 +44,7 @@ def trained(database, frames):
 def test_numpy_inference_equals_the_sklearn_model(body, database, frames, trained):
     regressor, mlp = trained
     x = (frames.poses.reshape(len(frames.poses), -1)[:, regressor.dofs] - regressor.input_mean) / regressor.input_scale
+    x = np.clip(x, -INPUT_CLIP, INPUT_CLIP)
     expected = (mlp.predict(x) * regressor.coefficient_scale) @ regressor.basis.reshape(len(regressor.basis), -1)
     expected = expected.reshape(frames.positions.shape) + regressor.mean
     np.testing.assert_allclose(predict(regressor, frames.poses), expected, atol=2e-5)
@@ -53,6 +55,25 @@ def test_numpy_inference_equals_the_sklearn_model(body, database, frames, traine
         out = np.empty_like(want)
         out[engine.order] = engine.pose_model.evaluate(pose, np.zeros(3), None).T
         np.testing.assert_allclose(out, want, atol=2e-5)
+
+
+def test_inputs_that_training_held_still_are_dropped_and_far_inputs_clipped(database, frames, trained):
+    """A dof (nearly) constant in the training frames is not an input; a pose far outside the training range gives
+    the prediction at INPUT_CLIP standard deviations, not an extrapolation (a retarget to another body moves dofs
+    held still at beta0)."""
+    still = np.array(frames.poses)
+    still[:, 5] = 0.3 + 1e-4 * np.sin(np.arange(len(still)))[:, None]  # bone 5 held (all but) still
+    regressor, _ = fit(TrainingData(still, frames.positions, frames.groups), pose_dofs(database, "all"), TINY)
+    assert not np.isin(np.arange(15, 18), regressor.dofs).any()
+    assert np.isin(pose_dofs(database, "all"), regressor.dofs).sum() == len(regressor.dofs) > 0
+    regressor = trained[0]
+    dof = int(regressor.dofs[0])
+    pose = np.array(frames.poses[:1])
+    edge, beyond = pose.copy(), pose.copy()
+    flat_edge, flat_beyond = edge.reshape(1, -1), beyond.reshape(1, -1)
+    flat_edge[0, dof] = regressor.input_mean[0] + 1.01 * INPUT_CLIP * regressor.input_scale[0]
+    flat_beyond[0, dof] = regressor.input_mean[0] + 30 * regressor.input_scale[0]
+    np.testing.assert_array_equal(predict(regressor, beyond), predict(regressor, edge))
 
 
 def test_training_is_deterministic_given_its_seed(database, frames, trained):

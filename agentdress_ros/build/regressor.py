@@ -24,9 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.database import Regressor, read_database, write_regressor
+from ..engine.pose_models import INPUT_CLIP
 from .sequences import check_training_clips, load_sequence_pack
 
 FEATURES = ("all", "sensitive")
+#: Inputs whose training standard deviation is below this (rad, or beta units) are left out of the MLP: the
+#: retarget holds some dofs nearly fixed at beta0 and moves them on other bodies, where the MLP would extrapolate.
+MIN_INPUT_STD = 0.01
 
 
 @dataclass(frozen=True)
@@ -135,13 +139,15 @@ def fit(data: TrainingData, dofs: np.ndarray, settings: RegressorSettings, progr
         # one scale for every coefficient: the MLP's squared error is then the rest-frame vertex error
         scale = np.full(k, coefficients[:, 0].std() + 1e-12)
         x = data.poses.reshape(n_frames, -1)[:, dofs]
-        x_mean, x_scale = x.mean(axis=0), np.maximum(x.std(axis=0), 1e-3)
+        varies = x.std(axis=0) >= MIN_INPUT_STD  # a nearly constant input carries no information, only risk
+        dofs, x = np.asarray(dofs)[varies], x[:, varies]
+        x_mean, x_scale = x.mean(axis=0), x.std(axis=0)
         mlp = MLPRegressor(hidden_layer_sizes=tuple(settings.hidden), activation=settings.activation,
                            solver="lbfgs", alpha=settings.alpha, max_iter=settings.max_iter, max_fun=10 * settings.max_iter,
                            random_state=settings.seed, tol=1e-7)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            mlp.fit((x - x_mean) / x_scale, coefficients / scale)
+            mlp.fit(np.clip((x - x_mean) / x_scale, -INPUT_CLIP, INPUT_CLIP), coefficients / scale)
     regressor = Regressor(
         dofs=np.asarray(dofs, dtype=np.int32), input_mean=x_mean.astype(np.float32),
         input_scale=x_scale.astype(np.float32), weights=tuple(w.astype(np.float32) for w in mlp.coefs_),
@@ -155,7 +161,8 @@ def fit(data: TrainingData, dofs: np.ndarray, settings: RegressorSettings, progr
 
 def standardized_inputs(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
     """(F, I) the MLP's standardised inputs for canonical poses (F, B, 3) (or input vectors (F, D))."""
-    return (poses.reshape(len(poses), -1)[:, regressor.dofs] - regressor.input_mean) / regressor.input_scale
+    z = (poses.reshape(len(poses), -1)[:, regressor.dofs] - regressor.input_mean) / regressor.input_scale
+    return np.clip(z, -INPUT_CLIP, INPUT_CLIP, out=z)
 
 
 def mlp_outputs(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
@@ -230,7 +237,9 @@ def training_key(pack_path, db, settings: RegressorSettings) -> str:
     if settings.examples:
         digest.update(np.ascontiguousarray(db.example_drapes).tobytes())
         digest.update(np.ascontiguousarray(db.example_poses).tobytes())
-    digest.update(json.dumps({**asdict(settings), "sklearn": sklearn.__version__}, sort_keys=True).encode())
+    inputs = {"clip": INPUT_CLIP, "min_std": MIN_INPUT_STD}  # how inputs are prepared: a change retrains
+    digest.update(json.dumps({**asdict(settings), "sklearn": sklearn.__version__, "inputs": inputs},
+                             sort_keys=True).encode())
     return digest.hexdigest()[:16]
 
 

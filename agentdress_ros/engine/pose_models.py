@@ -195,6 +195,12 @@ class SequencePoseModel:
         return self.out
 
 
+#: Standardised MLP inputs are clipped to this many training standard deviations. A dof nearly constant in the
+#: training data (a clavicle or hip-joint rotation set by the retarget at beta0) has a tiny scale, and the same
+#: motion retargeted to another body moved it 30 of them: the MLP extrapolated the trousers 10 cm off.
+INPUT_CLIP = 4.0
+
+
 class RegressorDecoder:
     """A stored Regressor evaluated with numpy: an input vector's `dofs`, standardised, through the MLP to PCA
     coefficients, decoded to a (3, V) array (x, y and z rows; `out`, an internal buffer). The output's
@@ -230,8 +236,10 @@ class RegressorDecoder:
         return twin
 
     def standardize(self, inputs) -> np.ndarray:
-        """(I,) the MLP's standardised input for an input vector (whose `dofs` it reads)."""
-        return (inputs.reshape(-1)[self.dofs] - self.input_mean) / self.input_scale
+        """(I,) the MLP's standardised input for an input vector (whose `dofs` it reads), clipped to
+        +-INPUT_CLIP."""
+        z = (inputs.reshape(-1)[self.dofs] - self.input_mean) / self.input_scale
+        return np.clip(z, -INPUT_CLIP, INPUT_CLIP, out=z)
 
     def coefficients_of(self, inputs) -> np.ndarray:
         """The MLP's standardised output y (G,) for an input vector (an internal buffer)."""
