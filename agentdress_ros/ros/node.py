@@ -274,6 +274,12 @@ class AgentDressNode(Node):
         if key == "marker" and rate_hz > 0 and getattr(self, "marker_pub", None) is None:
             self.marker_pub = self.create_publisher(Marker, "~/marker", 10)
 
+    def ms_until_tick(self) -> float:
+        """Milliseconds until the tick timer is next due (negative: overdue; inf without a timer)."""
+        timer = self._timer_by_key.get("tick")
+        left = None if timer is None else timer.time_until_next_call()
+        return float("inf") if left is None else left * 1e-6
+
     # ---- models --------------------------------------------------------------------------------------------------
     def _topology(self, model) -> Mesh:
         """The topology message of a model: its rest-pose frame and faces."""

@@ -328,7 +328,9 @@ class Scene:
         self.viewer = viewer
 
     # ---- the tick -------------------------------------------------------------------------------------------
-    def _estimate(self, agent: Agent, level: int) -> float:
+    def estimate(self, agent: Agent, level: int) -> float:
+        """ms that dressing (and publishing) `agent` at `level` is expected to take: its own measured cost, else
+        the level's across agents, plus the old level's while a cross-fade runs both."""
         cost = agent.cost_ms.get(level)
         if cost is None:
             cost = self.level_cost.get(level, DEFAULT_COST_MS)
@@ -392,7 +394,7 @@ class Scene:
             if not changed or not due:
                 report.idle += 1
                 continue
-            costs = [self._estimate(agent, level) for level in range(len(tiers))]
+            costs = [self.estimate(agent, level) for level in range(len(tiers))]
             candidate = Candidate(agent.name, agent.distance, agent.tier, costs, agent.waited)
             candidates.append(candidate)
             by_key[agent.name] = agent
