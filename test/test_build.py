@@ -270,8 +270,9 @@ def test_pack_from_another_drape_environment_is_refused(tmp_path):
 
 
 def test_pack_is_bit_exact_in_either_precision_and_reads_the_older_layout(tmp_path):
-    """Drapes that float32 holds exactly (newton's) are packed as float32, others as float64: both come back bit for
-    bit with their stats. A pack in the older layout (one entry per drape and field) still unpacks."""
+    """Drapes that float32 holds exactly (newton's) are packed as float32 (shuffled, lzma), others as float64: both
+    come back bit for bit with their stats. Packs in the older layouts (one float32 array; one entry per drape and
+    field) still unpack."""
     from agentdress_ros.build.jobs import DrapeStore, read_drape_pack
 
     plan_key = BuildConfig(**TINY).plan_key()
@@ -286,13 +287,18 @@ def test_pack_is_bit_exact_in_either_precision_and_reads_the_older_layout(tmp_pa
         pack = tmp_path / f"{stored.__name__}.npz"
         assert source.pack(pack, plan_key) == 2
         with np.load(pack) as data:
-            assert data["__vertices__"].dtype == stored
+            assert ("__vertices_xz__" in data.files) == (stored is np.float32)
+            assert stored is np.float32 or data["__vertices__"].dtype == stored
         store = DrapeStore(tmp_path / f"store_{stored.__name__}")
         assert store.unpack(pack, plan_key) == 2
         for k, vertices in enumerate(drapes):
             assert np.array_equal(store.load(f"anchor_0000_{k:02d}"), vertices)
         assert store.stats("anchor_0000_01") == {"frames": 11, "converged": True, "seconds": 1.5}
 
+    stacked = tmp_path / "stacked.npz"
+    np.savez_compressed(stacked, __plan_key__=np.array(plan_key), __keys__=np.array(["anchor_0000_00"]),
+                        __stats__=np.array(json.dumps([{"frames": 3}])), __vertices__=single[:1].astype(np.float32))
+    assert np.array_equal(read_drape_pack(stacked)["drapes"]["anchor_0000_00"][0], single[0])
     older = tmp_path / "older.npz"
     np.savez_compressed(older, __plan_key__=np.array(plan_key), **{"anchor_0000_00/vertices": double[0],
                                                                      "anchor_0000_00/stat_frames": np.array(7)})

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import lzma
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -158,9 +159,10 @@ class DrapeStore:
         key and drape environment (versions, garment template hash); returns the count. A build is resumable
         across machines from this one file (`unpack`).
 
-        The drapes go in as one (K, V, 3) array, float32 when that holds them exactly (newton simulates in
-        float32, so its drapes always do) and float64 otherwise, beside their keys and a JSON table of their
-        stats: half the size of one entry per drape and field, and still bit-exact (`read_drape_pack`).
+        The drapes go in as one (K, V, 3) array beside their keys and a JSON table of their stats: float32 when that
+        holds them exactly (newton simulates in float32, so its drapes always do), byte-shuffled and compressed with
+        lzma (a quarter smaller than under the npz's zlib), and float64 otherwise. Bit-exact either way, and
+        `read_drape_pack` still reads the older layouts.
         """
         files = sorted(self.folder.glob("*.npz"))
         keys, vertices, stats = [], [], []
@@ -218,12 +220,30 @@ def write_drape_pack(path, keys: list, vertices: list, stats: list, plan_key: st
     if keys:
         stacked = np.stack([np.asarray(v, dtype=np.float64) for v in vertices])
         single = stacked.astype(np.float32)
-        arrays["__vertices__"] = single if np.array_equal(single, stacked) else stacked
+        if np.array_equal(single, stacked):
+            arrays["__vertices_shape__"] = np.array(single.shape, dtype=np.int64)
+            arrays["__vertices_xz__"] = np.frombuffer(lzma.compress(_shuffled(single)), dtype=np.uint8)
+        else:
+            arrays["__vertices__"] = stacked
     path = Path(path)
     partial = path.with_name(path.name + ".partial")
     with open(partial, "wb") as handle:
         np.savez_compressed(handle, **arrays)
     os.replace(partial, path)
+
+
+def _shuffled(single: np.ndarray) -> bytes:
+    """(K, V, 3) float32 as bytes grouped by coordinate, then by byte of the float: the sign-and-exponent bytes of
+    neighbouring values sit together, which lzma packs a quarter smaller than the plain drapes under zlib."""
+    planes = np.ascontiguousarray(single.transpose(2, 0, 1)).view(np.uint8).reshape(-1, 4)
+    return np.ascontiguousarray(planes.T).tobytes()
+
+
+def _unshuffled(data: bytes, shape) -> np.ndarray:
+    """The inverse of _shuffled: (K, V, 3) float32."""
+    k, v, c = (int(n) for n in shape)
+    planes = np.frombuffer(data, dtype=np.uint8).reshape(4, -1).T
+    return np.ascontiguousarray(planes).view(np.float32).reshape(c, k, v).transpose(1, 2, 0)
 
 
 def read_drape_pack(path) -> dict:
@@ -241,7 +261,16 @@ def read_drape_pack(path) -> dict:
         if "__keys__" in data.files:
             keys = [str(k) for k in data["__keys__"]]
             stats = json.loads(str(data["__stats__"]))
-            vertices = data["__vertices__"] if keys else np.zeros((0, 0, 3))
+            if not keys:
+                vertices = np.zeros((0, 0, 3))
+            elif "__vertices_xz__" in data.files:
+                try:
+                    vertices = _unshuffled(lzma.decompress(data["__vertices_xz__"].tobytes()),
+                                           data["__vertices_shape__"])
+                except (lzma.LZMAError, ValueError) as error:
+                    raise ValueError(f"{path}: corrupt drapes ({error})") from None
+            else:
+                vertices = data["__vertices__"]
             if len(vertices) != len(keys) or len(stats) != len(keys):
                 raise ValueError(f"{path}: {len(keys)} keys, {len(vertices)} drapes and {len(stats)} stats differ")
             drapes = {k: (np.asarray(v, dtype=np.float64), s) for k, v, s in zip(keys, vertices, stats)}
