@@ -68,3 +68,9 @@ def test_engine_reproduces_the_anchor_drapes(shipped):
             errors.append(np.linalg.norm(out - truth, axis=1).mean())
         limit = 1e-3 if shape_index == 0 else 10e-3
         assert max(errors) < limit, (shape_index, errors)
+
+
+def test_shipped_data_stays_under_60_mb():
+    """Everything in data/ (databases, drape packs, sequence packs) travels with every clone: at most 60 MB."""
+    size = sum(p.stat().st_size for p in (ROOT / "data").iterdir() if p.is_file())
+    assert size < 60 * 10**6, f"data/ holds {size / 1e6:.1f} MB"
