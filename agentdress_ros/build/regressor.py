@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.database import Regressor, read_database, write_regressor
-from ..engine.pose_models import INPUT_CLIP
+from ..engine.pose_models import INPUT_CLIP, standardized
 from .sequences import check_training_clips, load_sequence_pack
 
 FEATURES = ("all", "sensitive")
@@ -147,7 +147,7 @@ def fit(data: TrainingData, dofs: np.ndarray, settings: RegressorSettings, progr
                            random_state=settings.seed, tol=1e-7)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            mlp.fit(np.clip((x - x_mean) / x_scale, -INPUT_CLIP, INPUT_CLIP), coefficients / scale)
+            mlp.fit(standardized(x, x_mean, x_scale), coefficients / scale)
     regressor = Regressor(
         dofs=np.asarray(dofs, dtype=np.int32), input_mean=x_mean.astype(np.float32),
         input_scale=x_scale.astype(np.float32), weights=tuple(w.astype(np.float32) for w in mlp.coefs_),
@@ -161,8 +161,8 @@ def fit(data: TrainingData, dofs: np.ndarray, settings: RegressorSettings, progr
 
 def standardized_inputs(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
     """(F, I) the MLP's standardised inputs for canonical poses (F, B, 3) (or input vectors (F, D))."""
-    z = (poses.reshape(len(poses), -1)[:, regressor.dofs] - regressor.input_mean) / regressor.input_scale
-    return np.clip(z, -INPUT_CLIP, INPUT_CLIP, out=z)
+    return standardized(poses.reshape(len(poses), -1)[:, regressor.dofs], regressor.input_mean,
+                        regressor.input_scale)
 
 
 def mlp_outputs(regressor: Regressor, poses: np.ndarray) -> np.ndarray:

@@ -204,6 +204,13 @@ class SequencePoseModel:
 INPUT_CLIP = 8.0
 
 
+def standardized(values, mean, scale) -> np.ndarray:
+    """(..., I) inputs standardised with the training mean and scale (I,), clipped to +-INPUT_CLIP: what every
+    regressor MLP sees, in training and at run time."""
+    z = (values - mean) / scale
+    return np.clip(z, -INPUT_CLIP, INPUT_CLIP, out=z)
+
+
 class RegressorDecoder:
     """A stored Regressor evaluated with numpy: an input vector's `dofs`, standardised, through the MLP to PCA
     coefficients, decoded to a (3, V) array (x, y and z rows; `out`, an internal buffer). The output's
@@ -241,8 +248,7 @@ class RegressorDecoder:
     def standardize(self, inputs) -> np.ndarray:
         """(I,) the MLP's standardised input for an input vector (whose `dofs` it reads), clipped to
         +-INPUT_CLIP."""
-        z = (inputs.reshape(-1)[self.dofs] - self.input_mean) / self.input_scale
-        return np.clip(z, -INPUT_CLIP, INPUT_CLIP, out=z)
+        return standardized(inputs.reshape(-1)[self.dofs], self.input_mean, self.input_scale)
 
     def coefficients_of(self, inputs) -> np.ndarray:
         """The MLP's standardised output y (G,) for an input vector (an internal buffer)."""

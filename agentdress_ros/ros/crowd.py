@@ -302,7 +302,7 @@ class Crowd:
                 self._take_poses(name, entity, agent)
             if shape_turn:
                 if entity["pending"]:
-                    self._parse_pending(self.scene.agents.get(name))
+                    self._parse_pending(agent)
                 shape = self.node._guarded(f"{name}/body_shape", self._on_shape)
                 for msg in self._take(entity, 1):
                     shape(name, msg)
@@ -381,8 +381,7 @@ class Crowd:
         # A tick about to start (or overdue) would wait for this agent: leave its pose to the tick, which dresses
         # it among the first (nearest first) inside the budget, instead of making that tick late.
         if agent.tier is not None and self.node.ms_until_tick() < self.scene.estimate(agent, agent.tier):
-            agent.dirty = True
-            return
+            return  # its new pose version makes it a candidate of that tick
         self.scene.dress_now(name, self._publish)
 
     def _answer_arrivals(self):

@@ -389,9 +389,7 @@ class Scene:
                     garment.reset()
             changed = (agent.pose.version != agent.done_version or agent.dirty or agent.fading()
                        or agent.tier != agent.tier_dressed)
-            every = tiers[agent.tier].every
-            due = every <= 1 or agent.waited > 0 or (self.ticks + agent.slot) % every == 0
-            if not changed or not due:
+            if not changed or not self._due(agent):
                 report.idle += 1
                 continue
             costs = [self.estimate(agent, level) for level in range(len(tiers))]
@@ -446,8 +444,8 @@ class Scene:
 
     def _dressing_budget(self, started: float) -> float:
         """ms left for dressing this tick: budget_ms less the tick's fixed costs (spent so far, expected after), the
-        arrivals the between_agents hook is expected to answer and the margin of recent misses; never 0 (which the scheduler reads as no budget)
-        while a budget is set."""
+        arrivals the between_agents hook is expected to answer and the margin of recent misses; never 0 (which the
+        scheduler reads as no budget) while a budget is set."""
         budget = self.config.budget_ms
         if budget <= 0:
             return budget
@@ -478,15 +476,18 @@ class Scene:
         agent.last_dressed = time.monotonic()
         return ms
 
+    def _due(self, agent: Agent) -> bool:
+        """The tick `self.ticks` is one of the agent's at its tier's rate (`every`, staggered by slot), or the
+        budget made it wait."""
+        every = self.config.lod.tiers[agent.tier].every
+        return every <= 1 or agent.waited > 0 or (self.ticks + agent.slot) % every == 0
+
     def needs_input(self, agent: Agent) -> bool:
         """Whether the next tick may dress `agent`, as far as the last one knows: in view and due at its tier's
         rate (an agent never placed yet, or any agent without levels of detail, always is)."""
         if agent.tier is None or self.viewer is None or not self.config.lod_enabled:
             return True
-        if not agent.visible:
-            return False
-        every = self.config.lod.tiers[agent.tier].every
-        return every <= 1 or agent.waited > 0 or (self.ticks + agent.slot) % every == 0
+        return agent.visible and self._due(agent)
 
     def dress_now(self, name: str, publish=None, now_ns: int = 0) -> bool:
         """Dress agent `name` right away at its tier's level if it is in view (a pose that just arrived at one of
@@ -501,6 +502,7 @@ class Scene:
 
     def status(self) -> dict:
         return {"agents": len(self.agents), "tiers": self.stats.as_dict(),
-                "budget_ms": self.config.budget_ms, "margin_ms": round(self.margin_ms, 3), "lod": self.config.lod_enabled,
+                "budget_ms": self.config.budget_ms, "margin_ms": round(self.margin_ms, 3),
+                "lod": self.config.lod_enabled,
                 "viewer": None if self.viewer is None else [round(float(v), 3) for v in self.viewer.position],
                 "shared_garments": len(self.library), "refits": self.refits}
