@@ -283,8 +283,9 @@ def test_a_tier_change_cross_fades_instead_of_popping(scene, walk):
 
 
 def test_budget_holds_with_artificially_expensive_agents(body, walk):
-    """Costs injected as estimates (smoothing 0 keeps them): the scheduler's decisions are checked, not wall time."""
-    scene = Scene(body, SceneConfig(budget_ms=3.5, cost_smoothing=0.0, fade_frames=0))
+    """Costs injected as estimates (smoothing 0 keeps them) and a stopped clock: the scheduler's decisions are
+    checked, not wall time (a preempted tick would rightly spend its budget on waiting)."""
+    scene = Scene(body, SceneConfig(budget_ms=3.5, cost_smoothing=0.0, fade_frames=0), clock=lambda: 0.0)
     try:
         distances = [1.5, 2.0, 5.0, 6.0, 25.0, 30.0, 35.0, 40.0]
         for i, x in enumerate(distances):

@@ -207,8 +207,9 @@ class Scene:
     """Agents dressed on the caller's thread; agents built and shapes refitted on one worker thread."""
 
     def __init__(self, body, config: SceneConfig = SceneConfig(), library: GarmentLibrary | None = None,
-                 pose_factory=PoseState, on_error=None, prepare=None):
+                 pose_factory=PoseState, on_error=None, prepare=None, clock=time.perf_counter):
         self.body, self.config = body, config
+        self.clock = clock  # seconds, for the budget and the measured costs (a test may stop it)
         self.library = library if library is not None else GarmentLibrary(body)
         self.pose_factory = pose_factory
         self.before_dress = None  # called with an agent just before it is dressed (e.g. to parse waiting input)
@@ -351,7 +352,7 @@ class Scene:
         The budget holds the whole tick: the agents get what is left of `budget_ms` after the time since
         `started` (the caller's perf_counter() when its tick began: taking input) and the caller's expected work
         after this call (`note_after_ms`)."""
-        start, clock = time.perf_counter(), time.monotonic()
+        start, tick_began = self.clock(), time.monotonic()
         started = start if started is None else started
         with self._cond:
             ready, self._ready = self._ready, []
@@ -396,21 +397,21 @@ class Scene:
             candidate = Candidate(agent.name, agent.distance, agent.tier, costs, agent.waited)
             candidates.append(candidate)
             by_key[agent.name] = agent
-        planned = 1e3 * (time.perf_counter() - started) + self.between_ms  # so far, and the hook's reserve
+        planned = 1e3 * (self.clock() - started) + self.between_ms  # so far, and the hook's reserve
         decisions = schedule(candidates, self._dressing_budget(started), config.protect_tiers, config.max_wait,
                              config.near_wait)
         decisions.sort(key=lambda d: by_key[d.key].distance)
         tier_ms = Counter()
-        between = time.perf_counter()
+        between = self.clock()
         hook_ms = 0.0
         for decision in decisions:
-            if self.between_agents is not None and time.perf_counter() - between >= INTERLEAVE_MS * 1e-3:
-                t0 = time.perf_counter()
+            if self.between_agents is not None and self.clock() - between >= INTERLEAVE_MS * 1e-3:
+                t0 = self.clock()
                 self.between_agents()
-                between = time.perf_counter()
+                between = self.clock()
                 hook_ms += 1e3 * (between - t0)
             agent = by_key[decision.key]
-            if agent.last_dressed >= clock:  # answered through between_agents during this tick: nothing left
+            if agent.last_dressed >= tick_began:  # answered through between_agents during this tick: nothing left
                 continue
             tier_name = tiers[decision.tier].name
             if decision.degraded:
@@ -428,7 +429,7 @@ class Scene:
         a = self.config.cost_smoothing
         self.between_ms = (1 - a) * self.between_ms + a * hook_ms
         self.ticks += 1
-        end = time.perf_counter()
+        end = self.clock()
         report.ms = 1e3 * (end - start)
         if decisions:
             self._note_miss(1e3 * (end - started) - planned - report.estimate_ms)
@@ -449,7 +450,7 @@ class Scene:
         budget = self.config.budget_ms
         if budget <= 0:
             return budget
-        spent = 1e3 * (time.perf_counter() - started)
+        spent = 1e3 * (self.clock() - started)
         return max(MIN_DRESSING_MS, budget - spent - self.after_ms - self.between_ms - self.margin_ms)
 
     def note_after_ms(self, ms: float):
@@ -460,14 +461,14 @@ class Scene:
 
     def _dress(self, agent: Agent, level: int, tier: int, publish, now_ns: int) -> float:
         """Dress and publish one agent at `level`; returns the ms it took (recorded as that level's cost)."""
-        t0 = time.perf_counter()
+        t0 = self.clock()
         if self.before_dress is not None:
             self.before_dress(agent)
         version = agent.pose.version
         frames = agent.dress(level)
         if publish is not None:
             publish(agent, frames, agent.pose.stamp_ns or now_ns)
-        ms = 1e3 * (time.perf_counter() - t0)
+        ms = 1e3 * (self.clock() - t0)
         self._record(agent, level, ms)
         self.stats.frames[self.config.lod.tiers[tier].name] += 1
         agent.level, agent.done_version, agent.dirty, agent.waited = level, version, False, 0
