@@ -159,6 +159,9 @@ def test_node_default_beats_the_skinned_baseline_on_the_shipped_ground_truth(bod
     results = [accuracy(_model(row, db, body, garment), test, inside) for row in (baseline, default)]
     (base_ci, default_ci), _ = bootstrap_intervals([r["error_per_case_cm"] for r in results])
     assert results[1]["error_mean_cm"] < 0.8 * results[0]["error_mean_cm"], results
+    for r in results:  # the winding-number inside share splits into the body's self-overlap and truly inside
+        assert r["inside_overlap_fraction"] + r["inside_true_fraction"] == pytest.approx(r["inside_fraction"])
+        assert 0.0 < r["inside_fraction"] < 0.2
     assert default_ci[1] < base_ci[0], (base_ci, default_ci)
 
 
