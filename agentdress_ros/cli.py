@@ -30,6 +30,8 @@ PASSTHROUGH = (
     ("view", ".ros.viewer", "view_main", "web viewer of the node's garments"),
     ("run", ".ros.run_all", "run_main", "node + demo + viewer together (what `make run` starts)"),
     ("eval", ".evaluate.evaluate", "main", "speed vs accuracy against held-out newton drapes (trade table, plots)"),
+    ("floor", ".evaluate.floor", "main", "the ground truth's own spread: held-out cases draped along another valid "
+     "path"),
     ("sequences", ".build.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),
     ("regressor", ".build.regressor", "main", "train the regressor pose model from a sequence pack into a database"),
     ("recurrent", ".build.recurrent", "main", "train the recurrent pose model (a GRU over the regressor's inputs) "

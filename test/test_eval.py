@@ -191,3 +191,24 @@ def test_pose_models_at_beta0_rerun_from_the_shipped_ground_truth(body, tmp_path
         assert abs(row["error_mean_cm"] - shipped[name]["error_mean_cm"]) < 0.01, name
     # the lbs pose model (the skinned beta0 garment) is the worst of them at beta0
     assert rows["lbs pose model alone"]["error_mean_cm"] > rows["examples pose model alone"]["error_mean_cm"]
+
+
+def test_floor_drapes_the_held_out_cases_along_another_path_and_compares(quick_eval, tmp_path):
+    """`agentdress floor` on the quick v2 set: the held-out drape (8-frame ramp) against the same case with a
+    16-frame ramp; a different but valid path gives a different, nearby drape, and a rerun simulates nothing."""
+    from agentdress_ros.evaluate.floor import ground_truth_spread
+
+    folder, _ = quick_eval
+    clip = shared_path("mocap", "cmu", f"{HELD_OUT_CLIPS[0]}.bvh")
+    args = (DATABASE, folder / "cache", folder / "report" / "ground_truth_drapes.npz", tmp_path / "floor",
+            {"ramp_frames": 16})
+    report = ground_truth_spread(*args, every=1, workers=0, progress=False, clips=[clip], quick=True)
+    assert len(report["cases"]) == 1 and report["alternative"]["ramp_frames"] == 16
+    assert 0.0 < report["mean_cm"] < 10.0 and report["mean_ci_cm"][0] <= report["mean_cm"] <= report["mean_ci_cm"][1]
+    assert (tmp_path / "floor" / "floor_drapes.npz").is_file()
+    json.loads((tmp_path / "floor" / "floor.json").read_text())
+    import shutil
+
+    shutil.rmtree(folder / "cache" / "floor")  # the pack alone carries the other path's drapes
+    again = ground_truth_spread(*args, every=1, workers=0, progress=False, clips=[clip], quick=True)
+    assert again["mean_cm"] == report["mean_cm"]

@@ -373,6 +373,33 @@ def stability_report(db, body, garment) -> list[dict]:
     return report
 
 
+def held_out_config(test_set: str = "v1", clips=None, quick: bool = False, drape: dict | None = None,
+                    overrides: dict | None = None):
+    """The HeldOutConfig of a test set: v1 (static collider, `clips` or the 5 default held-out clips) or v2
+    (evaluate.testset.held_out_v2); quick: one pose of the first clip, two shapes, short drapes (a smoke test);
+    drape: DrapeSettings overrides; overrides: HeldOutConfig fields to replace."""
+    from .testset import HeldOutConfig, default_clip_paths, held_out_v2
+
+    clips = [Path(c) for c in (clips or default_clip_paths())]
+    if quick:
+        config = HeldOutConfig(clips=clips[:1], poses_per_clip=1, shapes_inside=1, shapes_outside=1,
+                               sequence_frames=30, drape={"max_frames": 60, **(drape or {})})
+        if test_set == "v2":  # the same, with a short ramp and a short dynamic sequence
+            config.drape["ramp_frames"] = 8
+            config.dynamic_clips, config.dynamic_frames, config.dynamic_shapes = clips[:1], 4, 1
+    elif test_set == "v2":  # animated-collider drapes of all 10 test clips, and dynamic sequences
+        config = held_out_v2()
+        config.drape.update(drape or {})
+    else:
+        config = HeldOutConfig(clips=clips, drape=drape or {})
+    for key, value in (overrides or {}).items():
+        if key not in HeldOutConfig.__dataclass_fields__:
+            raise ValueError(f"--test-config: {key!r} is not a test-set field "
+                             f"({', '.join(HeldOutConfig.__dataclass_fields__)})")
+        setattr(config, key, [Path(v) for v in value] if key in ("clips", "dynamic_clips") else value)
+    return config
+
+
 def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: int = 2, progress: bool = True,
              drape: dict | None = None, pack=None, test_set: str = "v1", beta0_pack=None,
              test_config: dict | None = None) -> dict:
@@ -386,28 +413,12 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     from ..body import AnnyBody
     from ..engine import read_database
     from ..garment import make_garment
-    from .testset import HeldOutConfig, default_clip_paths, held_out_v2, make_held_out_set
+    from .testset import make_held_out_set
 
     db = read_database(db_path)
     body = AnnyBody()
     garment = make_garment(db.garment, body, db.n_vertices)
-    clips = [Path(c) for c in (clips or default_clip_paths())]
-    if quick:
-        config = HeldOutConfig(clips=clips[:1], poses_per_clip=1, shapes_inside=1, shapes_outside=1,
-                               sequence_frames=30, drape={"max_frames": 60, **(drape or {})})
-        if test_set == "v2":  # the same, with a short ramp and a short dynamic sequence
-            config.drape["ramp_frames"] = 8
-            config.dynamic_clips, config.dynamic_frames, config.dynamic_shapes = clips[:1], 4, 1
-    elif test_set == "v2":  # animated-collider drapes of all 10 test clips, and dynamic sequences
-        config = held_out_v2()
-        config.drape.update(drape or {})
-    else:
-        config = HeldOutConfig(clips=clips, drape=drape or {})
-    for key, value in (test_config or {}).items():
-        if key not in HeldOutConfig.__dataclass_fields__:
-            raise ValueError(f"--test-config: {key!r} is not a test-set field "
-                             f"({', '.join(HeldOutConfig.__dataclass_fields__)})")
-        setattr(config, key, [Path(v) for v in value] if key in ("clips", "dynamic_clips") else value)
+    config = held_out_config(test_set, clips, quick, drape, test_config)
     start = time.perf_counter()
     test = make_held_out_set(db, body, garment, config, cache, workers=workers, progress=progress, pack=pack)
     ground_truth_seconds = time.perf_counter() - start

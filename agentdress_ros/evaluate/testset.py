@@ -128,6 +128,32 @@ def held_out_poses(body, config: HeldOutConfig):
     return np.concatenate(poses), labels, sequence[0], sequence[1]
 
 
+def test_set_key(db, config: HeldOutConfig, betas) -> str:
+    """The plan key of a test set's drapes (its cache stamp and its pack's key)."""
+    fields = asdict(config)
+    if not config.dynamic_clips:  # a static set keeps the key it had before dynamic sequences existed
+        fields = {k: v for k, v in fields.items() if not k.startswith("dynamic_")}
+    return json.dumps({"garment": db.garment, "vertices": db.n_vertices, **fields,
+                       "clips": [Path(c).stem for c in config.clips], "betas": np.round(betas, 9).tolist()},
+                      sort_keys=True, default=str)
+
+
+def static_jobs(db, config: HeldOutConfig, poses, betas) -> list:
+    """The drape jobs of the static cases, "test_<pose>_<shape>": each pose's first shape draped from the skinned
+    garment (or from rest, with a ramp), the others warm-started from it."""
+    from ..build.jobs import DrapeJob
+
+    common = dict(garment=db.garment, garment_vertices=db.n_vertices, settings=config.drape)
+    warm_settings = {**config.drape, **config.warm_drape}
+    jobs = []
+    for p, pose in enumerate(poses):
+        for k, beta in enumerate(betas):
+            warm = {} if k == 0 else dict(warm_key=f"test_{p:04d}_00", warm_pose=pose, warm_beta=betas[0],
+                                          settings=warm_settings)
+            jobs.append(DrapeJob("test", p, k, pose, beta, **{**common, **warm}))
+    return jobs
+
+
 def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: int = 2, progress: bool = True,
                       pack=None) -> HeldOutSet:
     """Poses, shapes and ground-truth drapes of the test set (drapes from `cache` when present, else simulated).
@@ -136,7 +162,7 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
     drapes finish and after, so the ground truth can travel with the report instead of being simulated again.
     """
     from ..build.builder import run_jobs
-    from ..build.jobs import DrapeJob, DrapeStore
+    from ..build.jobs import DrapeStore
 
     if not config.clips:
         raise ValueError("no held-out clips given")
@@ -152,26 +178,14 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
 
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
-    fields = asdict(config)
-    if not config.dynamic_clips:  # a static set keeps the key it had before dynamic sequences existed
-        fields = {k: v for k, v in fields.items() if not k.startswith("dynamic_")}
-    key = json.dumps({"garment": db.garment, "vertices": db.n_vertices, **fields,
-                      "clips": [Path(c).stem for c in config.clips], "betas": np.round(betas, 9).tolist()},
-                     sort_keys=True, default=str)
+    key = test_set_key(db, config, betas)
     stamp = cache / "testset.json"
     if stamp.is_file() and stamp.read_text() != key:
         raise ValueError(f"{cache}: this cache holds another test set; use another --cache or delete it.\n"
                          f"  stored:    {stamp.read_text()}\n  requested: {key}")
     stamp.write_text(key)
 
-    common = dict(garment=db.garment, garment_vertices=db.n_vertices, settings=config.drape)
-    warm_settings = {**config.drape, **config.warm_drape}
-    jobs = []
-    for p, pose in enumerate(poses):
-        for k, beta in enumerate(betas):
-            warm = {} if k == 0 else dict(warm_key=f"test_{p:04d}_00", warm_pose=pose, warm_beta=betas[0],
-                                          settings=warm_settings)
-            jobs.append(DrapeJob("test", p, k, pose, beta, **{**common, **warm}))
+    jobs = static_jobs(db, config, poses, betas)
     store = DrapeStore(cache / "drapes")
     if pack is not None and Path(pack).is_file():
         store.unpack(pack, key)
