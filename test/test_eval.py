@@ -49,7 +49,8 @@ def test_quick_eval_measures_every_row_with_finite_numbers(quick_eval):
     # the anchor sweep runs up to every anchor of the database (shape models and examples restricted alike)
     assert max(r["config"]["anchors"] for r in rows if r["group"] == "anchors") == report["database_anchors"]
     for r in rows:
-        for key in ("error_mean_cm", "error_p95_cm", "inside_fraction", "ms_per_frame", "jitter_mm"):
+        for key in ("error_mean_cm", "error_p95_cm", "inside_fraction", "inside_faces_fraction", "ms_per_frame",
+                    "jitter_mm"):
             assert math.isfinite(r[key]) and r[key] >= 0.0, (r["name"], key, r[key])
         assert r["error_p95_cm"] >= r["error_mean_cm"] * 0.5
         assert len(r["error_per_shape_cm"]) == 2  # one shape inside, one just outside the training range

@@ -209,12 +209,13 @@ def vertex_parts(db) -> tuple[list, np.ndarray]:
     return [names[i] for i in used], np.searchsorted(used, labels)
 
 
-def accuracy(model, test, inside_tests, parts=None) -> dict:
+def accuracy(model, test, inside_tests, parts=None, faces=None) -> dict:
     """Errors of a model on every (pose, shape) of the test set: cm mean / p95, inside fraction, per shape, and
     the mean of each case (shape-major: case k * poses + p), which the bootstrap resamples; with parts
     (vertex_parts), the mean by part and the mean of each vertex over the cases ("vertex_error_cm", for the error
-    pictures: dropped from the report)."""
-    errors, inside, per_shape = [], [], []
+    pictures: dropped from the report). With faces (F, 3), the share of face centres inside the body too: where
+    skin shows through flat triangles although their vertices are outside."""
+    errors, inside, inside_faces, per_shape = [], [], [], []
     for k, beta in enumerate(test.betas):
         model.set_shape(beta)
         shape_errors = []
@@ -225,6 +226,8 @@ def accuracy(model, test, inside_tests, parts=None) -> dict:
             errors.append(error)
             shape_errors.append(error.mean())
             inside.append(inside_tests[p][k].shares(out))
+            if faces is not None:
+                inside_faces.append(inside_tests[p][k].fraction(out[faces].mean(axis=1)))
         per_shape.append(float(np.mean(shape_errors) * 100.0))
     cases = [float(e.mean() * 100.0) for e in errors]
     per_vertex = np.mean(errors, axis=0) * 100.0
@@ -233,6 +236,8 @@ def accuracy(model, test, inside_tests, parts=None) -> dict:
     out = {"error_mean_cm": float(errors.mean() * 100.0), "error_p95_cm": float(np.percentile(errors, 95) * 100.0),
            "inside_fraction": float(inside[0]), "inside_overlap_fraction": float(inside[1]),
            "inside_true_fraction": float(inside[2]), "error_per_shape_cm": per_shape, "error_per_case_cm": cases}
+    if faces is not None:
+        out["inside_faces_fraction"] = float(np.mean(inside_faces))
     if parts is not None:
         names, labels = parts
         out["error_by_part_cm"] = {n: float(per_vertex[labels == i].mean()) for i, n in enumerate(names)}
@@ -424,8 +429,10 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     ground_truth_seconds = time.perf_counter() - start
     inside_tests = [[InsideTest(body, beta, pose) for beta in test.betas] for pose in test.poses]
     # the same measure on the ground truth itself: what a perfect model would score
-    truth_inside = np.mean([inside_tests[p][k].shares(test.drapes[p, k])
-                            for p in range(len(test.poses)) for k in range(len(test.betas))], axis=0)
+    cases = [(p, k) for p in range(len(test.poses)) for k in range(len(test.betas))]
+    truth_inside = np.mean([inside_tests[p][k].shares(test.drapes[p, k]) for p, k in cases], axis=0)
+    truth_faces = float(np.mean([inside_tests[p][k].fraction(test.drapes[p, k][db.faces].mean(axis=1))
+                                 for p, k in cases]))
 
     rows = trade_rows(db.n_anchors, db.n_components, regressor=db.regressor is not None,
                       santesteban=db.santesteban is not None, kdsm=db.kdsm_model is not None,
@@ -438,7 +445,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         parts = vertex_parts(db)
         for row in tqdm(rows, desc="configurations", disable=not progress):
             models.append(_model(row, db, body, garment))
-            row.results = accuracy(models[-1], test, inside_tests, parts)
+            row.results = accuracy(models[-1], test, inside_tests, parts, db.faces)
         for row, timing in zip(rows, speed_and_jitter(models, test, test.betas[0], repeats=repeats)):
             row.results.update(timing)
         stability = stability_report(db, body, garment)
@@ -484,6 +491,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
                      "ground_truth_inside_fraction": float(truth_inside[0]),
                      "ground_truth_inside_overlap_fraction": float(truth_inside[1]),
                      "ground_truth_inside_true_fraction": float(truth_inside[2]),
+                     "ground_truth_inside_faces_fraction": truth_faces,
                      "ground_truth_seconds_this_run": ground_truth_seconds},
         "rows": [{"name": r.name, "group": r.group, "config": r.config, **r.results} for r in rows],
         "timing": {"frames": int(len(test.sequence)), "passes": repeats,
@@ -542,6 +550,10 @@ def write_error_picture(db, vertex_errors: dict, path: Path) -> Path:
     return path
 
 
+def _share(fraction) -> str:
+    return "-" if fraction is None else f"{100 * fraction:.2f} %"
+
+
 def _inside_cell(entry: dict, prefix: str = "") -> str:
     """'6.81 % (6.70 / 0.11)': the inside share and its split, from a row (or, with prefix, the test set)."""
     share = entry[f"{prefix}inside_fraction"]
@@ -553,13 +565,14 @@ def _inside_cell(entry: dict, prefix: str = "") -> str:
 
 def trade_markdown(report: dict) -> str:
     lines = ["| # | configuration | mean error (cm) | 95 % interval | minus node default (paired 95 % interval) | "
-             "p95 error (cm) | vs baseline | inside body (self-overlap / truly) | ms / frame | jitter (mm/frame^2) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "p95 error (cm) | vs baseline | inside body (self-overlap / truly) | face centres inside | ms / frame | "
+             "jitter (mm/frame^2) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for i, r in enumerate(report["rows"], start=1):
         (low, high), (d_low, d_high) = r["error_mean_ci_cm"], r["error_vs_default_ci_cm"]
         lines.append(f"| {i} | {r['name']} | {r['error_mean_cm']:.2f} | {low:.2f}-{high:.2f} | "
                      f"{d_low:+.2f} to {d_high:+.2f} | {r['error_p95_cm']:.2f} | {r['error_vs_baseline']:.2f}x | "
-                     f"{_inside_cell(r)} | {r['ms_per_frame']:.3f} | {r['jitter_mm']:.2f} |")
+                     f"{_inside_cell(r)} | {_share(r.get('inside_faces_fraction'))} | {r['ms_per_frame']:.3f} | "
+                     f"{r['jitter_mm']:.2f} |")
     parts = list(report["rows"][0].get("error_by_part_cm", {}))
     if parts:
         lines += ["", "Mean error by garment part (cm; the vertices' dominant skinning region, left and right merged; "
@@ -594,7 +607,8 @@ def trade_markdown(report: dict) -> str:
     truth = report["test_set"]
     lines += ["", f"Ground truth: {truth['drapes']} newton drapes of {len(truth['poses'])} held-out poses x "
               f"{len(truth['betas'])} shapes; {_inside_cell(truth, 'ground_truth_')} of their vertices inside the "
-              "body by the same winding-number test (in the body's self-overlap / truly through the skin)."]
+              "body by the same winding-number test (in the body's self-overlap / truly through the skin), and "
+              f"{_share(truth.get('ground_truth_inside_faces_fraction'))} of their face centres."]
     timing, boot = report["timing"], report["bootstrap"]
     lines += ["", f"ms / frame: the best of {timing['passes']} per-pass medians over the {timing['frames']}-frame "
               "held-out motion, one thread, every row in the same run (the passes interleaved across the rows): "
