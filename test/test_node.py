@@ -239,7 +239,7 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
     domain = DOMAIN_ID + 1
     params = {"garments": ["tshirt"], "garment_databases": [f"tshirt:{database}"], "display_subdivision": 0,
               "engine": ["pose_model=examples", "neighbors=3", "decay=false"], "status_rate_hz": 4.0,
-              "realtime_priority": 5}
+              "realtime_priority": 5, "inside_check_hz": 2.0}
     child = ChildProcess(node_args(params), ros_env(domain, str(tmp_path / "log")), tmp_path / "node.log")
     try:
         assert child.wait_for_output("garment models ready", timeout=90.0), child.output()
@@ -272,6 +272,20 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
             rotvecs, translation = motion.rotvecs[10], motion.root_translation[10]
             vertices, _ = publish_pose_until_answered((node, executor, joints, None, state), rotvecs, translation)
             np.testing.assert_allclose(vertices["tshirt"], model.synthesize(rotvecs, translation), atol=1e-5)
+            # the inside diagnostic: the published garment against the posed body, by the evaluation's test
+            from agentdress_ros.ros.inside_check import InsideChecker
+
+            checks = state["status"][-1]["inside"]["checks"]
+            assert spin_until(executor, lambda: state["status"][-1]["inside"]["checks"] >= checks + 2, 10.0)
+            inside = state["status"][-1]["inside"]
+            checker = InsideChecker(body, None)
+            expected = checker.check({"tshirt": (vertices["tshirt"], db.faces)}, rotvecs,
+                                    translation, state["status"][-1]["shape"])
+            checker.stop()
+            assert inside["garments"] == expected["garments"] and 0.0 <= inside["age_s"] < 2.0, inside
+            shares = inside["garments"]["tshirt"]
+            assert shares["vertices_inside_pct"] == pytest.approx(shares["in_self_overlap_pct"]
+                                                                  + shares["truly_inside_pct"])
     finally:
         assert child.stop() == 0, child.output()
 

@@ -25,7 +25,7 @@ OVERLAP_RADIUS = 0.03
 _SURFACE_LIFT = 1.0e-3
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _winding_numbers(points, vertices, faces, out):
     inv_four_pi = 1.0 / (4.0 * np.pi)
     for i in range(points.shape[0]):
@@ -54,7 +54,7 @@ def _winding_numbers(points, vertices, faces, out):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _triangle_solid_angle(px, py, pz, vertices, face):
     a0 = vertices[face[0], 0] - px
     a1 = vertices[face[0], 1] - py
@@ -74,7 +74,7 @@ def _triangle_solid_angle(px, py, pz, vertices, face):
     return 2.0 * np.arctan2(det, denominator)  # Van Oosterom & Strackee
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _clustered_winding_numbers(points, vertices, faces, order, starts, centres, normals, radii, far, out):
     """Barnes-Hut winding numbers: a cluster of faces seen from farther than `far` x its radius counts as the dipole
     of its area-weighted normal sum (Barill et al. 2018, first order); nearer clusters are summed face by face."""

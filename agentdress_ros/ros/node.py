@@ -14,7 +14,8 @@ Topics (relative to the node, `~` = /agentdress_node):
                                                           a display client skins the body itself (exactly the cloud)
   out  ~/marker             visualization_msgs/Marker     only with marker_rate_hz > 0 (one per garment, ns = name;
                                                           a crowd: ~/<agent>/marker for the agents nearest the viewer)
-  out  ~/status             std_msgs/String (JSON)        at status_rate_hz
+  out  ~/status             std_msgs/String (JSON)        at status_rate_hz; one agent: "inside", the last
+                                                          garments' shares inside the body (inside_check_hz)
 
 The status is JSON on a String rather than diagnostic_msgs on /diagnostics: its content is nested (timings,
 counts by reason, per-garment facts) and the bench, the viewer and the tests parse it directly; DiagnosticArray
@@ -52,6 +53,7 @@ from visualization_msgs.msg import Marker
 from ..garment import TEMPLATES
 from .garment_models import GarmentDatabaseError, skin_binding
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
+from .inside_check import InsideChecker
 from .messages import (SerializedBones, make_marker, make_mesh, make_point_cloud, make_skin, set_cloud_vertices,
                        stamp_from_ns)
 from .params import (GARMENT_MODELS, PARAMETERS, ParameterError, check_garment_config, database_file_problem,
@@ -124,6 +126,7 @@ class AgentDressNode(Node):
         self._set_timer("tick", self.config["rate_hz"], self._on_tick)
         self._set_timer("status", self.config["status_rate_hz"], self._on_status)
         self._set_timer("marker", self.config["marker_rate_hz"], self._on_marker)
+        self._set_timer("inside", self.config["inside_check_hz"], self._on_inside_check)
         self._start_marker_thread()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
@@ -162,6 +165,8 @@ class AgentDressNode(Node):
         self._running_parameters = self._scene_parameters()
         self._requested_parameters: dict[tuple, list[Parameter]] = {}
         self._retry_install = None
+        self._last_pose = None  # (rotvecs, root translation) of the last frame computed
+        self.inside = InsideChecker(self.body, lambda error: self._report_error("inside_check", error))
         self._install(model_set)
         self.worker = ModelWorker(self.body, model_set, on_built=self._on_built, prepare=self._prepare)
 
@@ -239,7 +244,8 @@ class AgentDressNode(Node):
         for p in parameters:
             self.config[p.name] = validate(p.name, p.value)
         for name, key, callback in (("rate_hz", "tick", self._on_tick), ("status_rate_hz", "status", self._on_status),
-                                    ("marker_rate_hz", "marker", self._on_marker)):
+                                    ("marker_rate_hz", "marker", self._on_marker),
+                                    ("inside_check_hz", "inside", self._on_inside_check)):
             if name in changed:
                 self._set_timer(key, self.config[name], callback)
         if "warn_throttle_s" in changed:
@@ -509,6 +515,7 @@ class AgentDressNode(Node):
         self.stats.tick_ms.append(1e3 * (time.perf_counter() - start))
         self._done_version, self._dirty, self._last_publish = self.pose.version, False, now
         self._last_compute = now
+        self._last_pose = (rotvecs, translation)
 
     def _bones_only(self, name: str) -> bool:
         """A plain-LBS model streamed as bones (the body) whose points nobody takes - a display client skins it from
@@ -600,7 +607,17 @@ class AgentDressNode(Node):
                          for n, m in self.models.items()},
             "shape": list(self.model_set.scene.beta),
             "model_generation": self.model_set.generation,
+            "inside": self.inside.status(),
         }
+
+    def _on_inside_check(self):
+        """Hand the last published garments (not the body) and their pose to the inside checker's thread."""
+        if self.crowd is not None or self._last_pose is None:
+            return
+        frames = {n: (self.guard.last_good[n].copy(), m.faces) for n, m in self.models.items()
+                  if n in self.guard.last_good and n != "body"}
+        if frames:
+            self.inside.submit(frames, *self._last_pose, self.model_set.scene.beta)
 
     def _on_status(self):
         self.status_pub.publish(String(data=json.dumps(self.status())))
@@ -656,6 +673,7 @@ class AgentDressNode(Node):
             self.crowd.stop()
         else:
             self.worker.stop()
+            self.inside.stop()
         return super().destroy_node()
 
 

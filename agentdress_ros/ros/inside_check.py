@@ -1,0 +1,97 @@
+"""The node's inside diagnostic: the last published garments tested against the posed body on a background thread.
+
+It is the test the drapes, the build reports and the evaluation use (garment.inside: generalised winding number,
+split into vertices caught where Anny's skinned body overlaps itself and vertices truly through the skin), plus the
+share of face centres inside: where skin shows through flat triangles although their vertices are outside. A check
+of a 1,200-vertex garment takes tens of milliseconds, so it runs at `inside_check_hz` (0.2 Hz by default) on its own
+thread; its kernels release the GIL, so the timer thread keeps its ticks.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+__all__ = ["InsideChecker"]
+
+
+class InsideChecker:
+    """submit() a snapshot from the executor thread; the thread checks the newest one; status() for ~/status."""
+
+    def __init__(self, body, on_error):
+        from ..sim.posing import visible_body
+
+        self.body, self.on_error = body, on_error
+        self.ids, self.faces = visible_body(body)
+        self.results: dict = {}
+        self.checks = 0
+        self._shape_key, self._shape = None, None
+        self._job, self._event, self._stopped = None, threading.Event(), False
+        self._start()  # now, before the node raises its executor thread's priority (a thread inherits it)
+
+    def _start(self):
+        self._thread = threading.Thread(target=self._loop, name="agentdress-inside", daemon=True)
+        self._thread.start()
+
+    def submit(self, frames: dict, rotvecs, root_translation, beta):
+        """frames {name: (vertices (V, 3), faces (F, 3))} published for the pose rotvecs (B, 3), root (3,) and
+        shape beta; copies are the caller's (the thread reads them later)."""
+        if not self._thread.is_alive():  # it died of something the loop does not catch
+            self._start()
+        self._job = (frames, np.array(rotvecs, dtype=np.float64), np.array(root_translation, dtype=np.float64),
+                     tuple(float(b) for b in beta))
+        self._event.set()
+
+    def _loop(self):
+        import os
+
+        try:  # a thread restarted from a realtime executor thread would inherit its SCHED_FIFO: a diagnostic is not
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except (AttributeError, OSError):
+            pass
+        while not self._stopped:
+            if not self._event.wait(timeout=0.5):
+                continue
+            self._event.clear()
+            job, self._job = self._job, None
+            if job is None:
+                continue
+            try:
+                self.results = self.check(*job)
+                self.checks += 1
+            except Exception as error:  # the next snapshot is a fresh try; the thread goes on
+                self.on_error(error)
+
+    def check(self, frames: dict, rotvecs, root_translation, beta) -> dict:
+        """{"garments": {name: shares in %}, "ms", "checked_at"} for one snapshot (see submit)."""
+        from ..garment.inside import BodyInside
+
+        start = time.perf_counter()
+        if beta != self._shape_key:
+            self._shape_key, self._shape = beta, self.body.shape(np.asarray(beta))
+        transforms, _ = self.body.pose(self._shape, rotvecs, root_translation)
+        test = BodyInside(self.body.posed_vertices(self._shape, transforms)[self.ids], self.faces)
+        garments = {}
+        for name, (vertices, faces) in frames.items():
+            vertices = np.asarray(vertices, dtype=np.float64)
+            report = test.report(vertices)
+            centres = test.report(vertices[np.asarray(faces)].mean(axis=1))
+            n = max(len(vertices), 1)
+            garments[name] = {"vertices_inside_pct": round(100.0 * report["inside_count"] / n, 3),
+                              "in_self_overlap_pct": round(100.0 * report["overlap_count"] / n, 3),
+                              "truly_inside_pct": round(100.0 * report["truly_inside_count"] / n, 3),
+                              "face_centres_inside_pct": round(100.0 * centres["inside_count"] / max(len(faces), 1),
+                                                               3)}
+        return {"garments": garments, "ms": round(1e3 * (time.perf_counter() - start), 1),
+                "checked_at": time.monotonic()}
+
+    def status(self) -> dict:
+        results = dict(self.results)
+        if not results:
+            return {"checks": self.checks}
+        return {"checks": self.checks, "age_s": round(time.monotonic() - results.pop("checked_at"), 2), **results}
+
+    def stop(self):
+        self._stopped = True
+        self._event.set()
