@@ -134,6 +134,45 @@ def test_penetration_handling_lifts_a_garment_pushed_into_the_body(db, body):
     assert (after >= engine._state.clearances.min(axis=0) - 1e-6).all()
 
 
+def test_body_projection_puts_every_vertex_outside_its_nearest_candidate(db, body):
+    """A garment sunk 2 cm into the body: with projection, each output vertex lies at least the margin in front of
+    the nearest of its K candidate body vertices (skinned in numpy here; nearest to the unprojected vertex), moved
+    along that vertex's normal only; a fork may turn it off (the plain output) but not change K."""
+    from dataclasses import replace
+
+    from agentdress_ros.garment.binding import vertex_normals
+
+    reference = body.shape(db.beta0)
+    normals = vertex_normals(reference.vertices, body.body_faces)
+    order = np.argsort(Engine(db, body, EXACT).order)
+    sunk_db = replace(db, rest=(db.rest - 0.02 * normals[Engine(db, body, EXACT).bound_body_vertex[order]]
+                                ).astype(np.float32))
+    config = EngineConfig(penetration=False, decay=False, projection=8, dtype="float64")
+    engine = Engine(sunk_db, body, config)
+    pose = db.anchor_poses[2]
+    on = engine.synthesize(pose).copy()
+    off = engine.fork(projection=0).synthesize(pose).copy()
+    np.testing.assert_allclose(off, Engine(sunk_db, body, replace(config, projection=0)).synthesize(pose))
+    transforms, _ = body.pose(reference, np.asarray(pose, dtype=np.float64))
+    ids = engine.projection_vertices
+    weights = body.skin_weights[ids][:, :, None, None]
+    blend = (weights * transforms[body.skin_indices[ids]]).sum(axis=1)  # (U, 3, 4)
+    points = np.einsum("uij,uj->ui", blend[:, :, :3], reference.vertices[ids]) + blend[:, :, 3]
+    rotated = np.einsum("uij,uj->ui", blend[:, :, :3], normals[ids])
+    rotated /= np.linalg.norm(rotated, axis=1, keepdims=True)
+    candidates = engine._projection_candidates  # (V, K) in output rows
+    nearest = candidates[np.arange(len(off)), np.linalg.norm(off[:, None] - points[candidates], axis=2).argmin(1)]
+    depth = ((on - points[nearest]) * rotated[nearest]).sum(axis=1)
+    assert depth.min() >= config.penetration_margin - 1e-6
+    moved = np.linalg.norm(on - off, axis=1) > 1e-9
+    assert 0.2 < moved.mean() < 1.0  # sunk 2 cm: most vertices come out
+    np.testing.assert_allclose(depth[moved], config.penetration_margin, atol=1e-6)  # ...to the margin exactly
+    along = np.cross(on[moved] - off[moved], rotated[nearest[moved]])  # along their nearest's normal
+    assert np.abs(along).max() < 1e-6
+    with pytest.raises(ValueError, match="candidates"):
+        engine.fork(projection=4)
+
+
 def test_examples_pose_model_reproduces_an_example_at_its_pose(db, body):
     engine = Engine(db, body, EngineConfig(pose_model="examples", penetration=False, decay=False))
     out = engine.pose_model_output(db.example_poses[2])

@@ -24,8 +24,8 @@ from ..body.kinematics import forward_kinematics, linear_blend_skinning, linear_
 from ..garment.binding import SurfaceBinding, evaluate_surface_binding, vertex_normals
 from .config import TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
-from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, region_neighbours,
-                      shape_anchors, synthesize_vertices, unpose)
+from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, project_out_of_body,
+                      region_neighbours, shape_anchors, synthesize_vertices, unpose)
 from .pose_models import PoseModelContext, canonical_poses, make_pose_model
 
 N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-zero regions
@@ -66,6 +66,8 @@ class _ShapeState:
     body_points: np.ndarray  # (V, 3) bound body vertex at rest
     body_normals: np.ndarray  # (V, 3)
     rest: np.ndarray  # (V, 3) config dtype: the garment fitted to beta at rest (its binding; beta0's rest without one)
+    projection_points: np.ndarray | None = None  # (U, 3) the projection's candidate body vertices at rest, and
+    projection_normals: np.ndarray | None = None  # (U, 3) their normals (config.projection > 0)
 
 
 def select_database(db: Database, config: EngineConfig) -> Database:
@@ -243,6 +245,7 @@ class Engine:
         surface = body.body_vertex_ids
         _, nearest = cKDTree(self.reference.vertices[surface]).query(np.asarray(db.rest, dtype=np.float64))
         self.bound_body_vertex = surface[nearest]  # (V,) hm08 ids
+        self._bind_projection(surface)
 
         # skinned_residual databases: the fitted garment skinned to every anchor at beta0 (the shape models add to it)
         self._residual = db.shape_basis == "skinned_residual"
@@ -270,6 +273,22 @@ class Engine:
         self.bad_frames = 0
         self.shape_report = self.set_shape(db.beta0)
 
+    def _bind_projection(self, surface):
+        """config.projection > 0: each output row's `projection` nearest body vertices at rest (beta0), as indices
+        (V, K) into the U body vertices any row names, with their skinning."""
+        k = int(self.config.projection)
+        if k <= 0:
+            self.projection_vertices = None
+            return
+        rest = np.empty((self.n_vertices, 3))
+        rest[self.order] = np.asarray(self.db.rest, dtype=np.float64)  # output row order
+        _, nearest = cKDTree(self.reference.vertices[surface]).query(rest, k=k)
+        ids, local = np.unique(surface[np.asarray(nearest).reshape(self.n_vertices, k)], return_inverse=True)
+        self.projection_vertices = ids  # (U,) hm08 ids
+        self._projection_candidates = np.ascontiguousarray(local.reshape(self.n_vertices, k), dtype=np.int32)
+        self._projection_skin = (np.ascontiguousarray(self.body.skin_indices[ids]),
+                                 np.ascontiguousarray(self.body.skin_weights[ids], dtype=self.dtype))
+
     def _allocate_frame_buffers(self):
         """Per-frame scratch and output buffers (allocated once per engine; a fork gets its own)."""
         b, r, k = self.n_bones, self.q.shape[0], self.neighbors
@@ -293,6 +312,9 @@ class Engine:
         self._normals = np.zeros((3, v), dtype=self.dtype)
         self._push = np.zeros(v, dtype=self.dtype)
         self._no_pose = np.zeros((3, v), dtype=self.dtype)
+        if self.projection_vertices is not None:
+            self._projected = np.zeros((len(self.projection_vertices), 3), dtype=self.dtype)
+            self._projected_normals = np.zeros_like(self._projected)
         rest = np.empty((v, 3), dtype=self.dtype)
         rest[self.order] = self.db.rest
         self._buffers = (rest, rest.copy())  # double buffer: the last good frame survives a bad one
@@ -391,7 +413,9 @@ class Engine:
                       self._residual, base, self._base0, self._anchor_transforms0)
         if self._fold is not None:
             deltas += self._fold
-        self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals, rest)
+        projection = (None, None) if self.projection_vertices is None else tuple(
+            np.ascontiguousarray(a[self.projection_vertices], dtype=self.dtype) for a in (shape.vertices, normals))
+        self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals, rest, *projection)
         report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start,
                              model_beta, held_names)
         self.shape_report = report
@@ -399,7 +423,7 @@ class Engine:
 
     # ---------------------------------------------------------------- many agents on one loaded database
     #: EngineConfig fields a fork may change: they act per frame and leave the shape state's meaning unchanged.
-    FORK_FIELDS = ("neighbors", "penetration", "decay", "damping", "power")
+    FORK_FIELDS = ("neighbors", "penetration", "projection", "decay", "damping", "power")
 
     def fork(self, **changes) -> "Engine":
         """A new engine for another agent (or another level of detail of this one) on the same loaded data.
@@ -415,9 +439,14 @@ class Engine:
         config = replace(self.config, **changes)
         if config.penetration and not self.config.penetration:
             raise ValueError("a fork with penetration handling needs a parent that has it (clearances)")
+        if config.projection and config.projection != self.config.projection:
+            raise ValueError(f"a fork can turn the body projection off, or keep the parent's "
+                             f"{self.config.projection} candidates; not {config.projection}")
         twin = copy.copy(self)
         twin.config = config
         twin.neighbors = min(int(config.neighbors), self.db.n_anchors)
+        if not config.projection:
+            twin.projection_vertices = None
         context = replace(self.pose_model_context, power=float(config.power), decay=bool(config.decay),
                           damping=float(config.damping))
         twin.pose_model_context = context
@@ -501,6 +530,10 @@ class Engine:
         if penetration:
             block_push(self._zero, *blocks, state.clearances, self._clearance, self._push)
             bad = apply_push(self._push, self._normals, self.order, out)
+        if self.projection_vertices is not None and not bad:
+            bad = project_out_of_body(out, self._projection_candidates, state.projection_points,
+                                      state.projection_normals, *self._projection_skin, self.transforms,
+                                      self.config.penetration_margin, self._projected, self._projected_normals)
         if bad:
             self.bad_frames += 1
             return self._buffers[self._current]

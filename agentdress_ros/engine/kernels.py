@@ -312,6 +312,75 @@ def apply_push(push, normals, order, out):
     return bad
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _blended_transform(transforms, skin_indices, skin_weights, v):
+    """Row v's linear blend of its bones' transforms (B, 3, 4): the 3x3 part row-major, then the translation."""
+    a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = tx = ty = tz = 0.0
+    for j in range(skin_indices.shape[1]):
+        w = skin_weights[v, j]
+        b = skin_indices[v, j]
+        a00 += w * transforms[b, 0, 0]
+        a01 += w * transforms[b, 0, 1]
+        a02 += w * transforms[b, 0, 2]
+        a10 += w * transforms[b, 1, 0]
+        a11 += w * transforms[b, 1, 1]
+        a12 += w * transforms[b, 1, 2]
+        a20 += w * transforms[b, 2, 0]
+        a21 += w * transforms[b, 2, 1]
+        a22 += w * transforms[b, 2, 2]
+        tx += w * transforms[b, 0, 3]
+        ty += w * transforms[b, 1, 3]
+        tz += w * transforms[b, 2, 3]
+    return a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz
+
+
+@numba.njit(cache=True, nogil=True)
+def project_out_of_body(out, candidates, points, normals, skin_indices, skin_weights, transforms, margin, posed,
+                        posed_normals):
+    """In place: each garment vertex out[v] (V, 3) closer than `margin` in front of (or behind) the nearest of its
+    body-vertex candidates (V, K) moves out along that vertex's normal to `margin`. The candidates index points,
+    normals (U, 3): body vertices at rest on the current shape, skinned here with their own skin_indices,
+    skin_weights (U, J) and transforms (B, 3, 4) into the scratch posed, posed_normals (U, 3). Compiled without
+    fastmath (its isfinite checks must stay). Returns the count of non-finite output vertices."""
+    for u in range(points.shape[0]):
+        a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz = _blended_transform(transforms, skin_indices,
+                                                                                      skin_weights, u)
+        px, py, pz = points[u, 0], points[u, 1], points[u, 2]
+        posed[u, 0] = a00 * px + a01 * py + a02 * pz + tx
+        posed[u, 1] = a10 * px + a11 * py + a12 * pz + ty
+        posed[u, 2] = a20 * px + a21 * py + a22 * pz + tz
+        mx, my, mz = normals[u, 0], normals[u, 1], normals[u, 2]
+        nx = a00 * mx + a01 * my + a02 * mz
+        ny = a10 * mx + a11 * my + a12 * mz
+        nz = a20 * mx + a21 * my + a22 * mz
+        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if norm > 1e-12:
+            nx, ny, nz = nx / norm, ny / norm, nz / norm
+        posed_normals[u, 0] = nx
+        posed_normals[u, 1] = ny
+        posed_normals[u, 2] = nz
+    bad = 0
+    for v in range(out.shape[0]):
+        x, y, z = out[v, 0], out[v, 1], out[v, 2]
+        best = np.inf
+        nearest = candidates[v, 0]
+        for k in range(candidates.shape[1]):
+            u = candidates[v, k]
+            dx, dy, dz = x - posed[u, 0], y - posed[u, 1], z - posed[u, 2]
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 < best:
+                best, nearest = d2, u
+        nx, ny, nz = posed_normals[nearest, 0], posed_normals[nearest, 1], posed_normals[nearest, 2]
+        h = (x - posed[nearest, 0]) * nx + (y - posed[nearest, 1]) * ny + (z - posed[nearest, 2]) * nz
+        if h < margin:
+            out[v, 0] = x + (margin - h) * nx
+            out[v, 1] = y + (margin - h) * ny
+            out[v, 2] = z + (margin - h) * nz
+        if not (np.isfinite(out[v, 0]) and np.isfinite(out[v, 1]) and np.isfinite(out[v, 2])):
+            bad += 1
+    return bad
+
+
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def block_accumulate(block_start, block_regions, region_w, selected, weights, rows, out):
     """out (C, V) = sum_g w_{g,y} sum_k W_g^k rows[selected[g, k], :, y]: the per-vertex blend of Eq. 8.
@@ -446,23 +515,8 @@ def shape_anchors(delta_coefficients, coefficients, means, components, anchor_tr
     for s in range(n_anchors):
         transforms = anchor_transforms[s]
         for v in range(n_vertices):
-            a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0
-            tx = ty = tz = 0.0
-            for i in range(skin_indices.shape[1]):
-                w = skin_weights[v, i]
-                b = skin_indices[v, i]
-                a00 += w * transforms[b, 0, 0]
-                a01 += w * transforms[b, 0, 1]
-                a02 += w * transforms[b, 0, 2]
-                a10 += w * transforms[b, 1, 0]
-                a11 += w * transforms[b, 1, 1]
-                a12 += w * transforms[b, 1, 2]
-                a20 += w * transforms[b, 2, 0]
-                a21 += w * transforms[b, 2, 1]
-                a22 += w * transforms[b, 2, 2]
-                tx += w * transforms[b, 0, 3]
-                ty += w * transforms[b, 1, 3]
-                tz += w * transforms[b, 2, 3]
+            a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz = _blended_transform(transforms, skin_indices,
+                                                                                          skin_weights, v)
             dx = dy = dz = 0.0
             fx, fy, fz = means[s, v, 0], means[s, v, 1], means[s, v, 2]
             if use_base:

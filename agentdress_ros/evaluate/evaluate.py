@@ -35,6 +35,10 @@ class Row:
     results: dict = field(default_factory=dict)
 
 
+#: Candidate body vertices of the body-projection row (EngineConfig.projection).
+PROJECTION = 16
+
+
 def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, santesteban: bool = False,
                kdsm: bool = False, recurrent: bool = False) -> list[Row]:
     """The rows of the trade table (the anchors' K and the examples pose model's K in {1, 3, 5, 8}, components in
@@ -69,6 +73,7 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
                             {**base, "components": min(c, n_components)}))
     rows += [
         Row("synthesis, penetration handling off", "refinement", {**base, "penetration": False}),
+        Row(f"synthesis, body projection ({PROJECTION} candidates)", "refinement", {**base, "projection": PROJECTION}),
         Row("synthesis, decay off", "refinement", {**base, "decay": False}),
         Row("synthesis, penetration and decay off", "refinement", {**base, "penetration": False, "decay": False}),
         Row("ablation Sec. 4.6: no first-order term (blend of the anchors' re-posed f(beta, theta_s))", "ablation",

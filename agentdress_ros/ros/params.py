@@ -62,7 +62,7 @@ PARAMETERS: dict[str, Spec] = {
                                "garment_model/santesteban group; one agent only, README 'Santesteban et al.'s "
                                "system')"),
     "engine": Spec(["pose_model=examples"], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
-                       "examples, regressor, recurrent, kdsm), fold, neighbors, components, anchors, shape_model, penetration, decay, damping, dtype "
+                       "examples, regressor, recurrent, kdsm), fold, neighbors, components, anchors, shape_model, penetration, projection, decay, damping, dtype "
                        "(float32, float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
     "display_subdivision": Spec(1, "rounds of Loop subdivision (0, 1, 2) of each garment for display, published as "
                                    "its cloud and mesh (a fixed sparse matrix after penetration handling; README "
@@ -146,7 +146,7 @@ GARMENT_MODELS = ("agentdress", "santesteban")
 # EngineConfig fields settable from a parameter, with their coercion (the rest are library-only).
 _ENGINE_FIELDS = {
     "pose_model": str, "taylor": str, "dtype": str,
-    "neighbors": int, "pose_neighbors": int, "components": int, "anchors": int,
+    "neighbors": int, "pose_neighbors": int, "components": int, "anchors": int, "projection": int,
     "shape_model": bool, "penetration": bool, "decay": bool, "clamp_to_training_range": bool, "fold": bool,
     "damping": float, "penetration_margin": float, "power": float,
 }
