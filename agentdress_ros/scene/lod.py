@@ -9,8 +9,8 @@ A tier is one line of text, so a list of them is a plain ROS string-array parame
     "distant inf skinned every=6"                        beyond: dressed every sixth tick (15 Hz at 90 Hz)
 
 `<name> <max distance in m | inf> <synthesis | skinned> [key=value ...]`: keys are the engine's per-frame knobs
-(`Engine.FORK_FIELDS`: neighbors, penetration, decay, damping, power) for synthesis tiers, and `every=n` for any
-tier. Tiers are ordered by distance; the last one must reach `inf`.
+(`Engine.FORK_FIELDS`: neighbors, penetration, projection (0 only: off), decay, damping, power) for synthesis
+tiers, and `every=n` for any tier. Tiers are ordered by distance; the last one must reach `inf`.
 """
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ import numpy as np
 __all__ = ["DEFAULT_TIERS", "LodPolicy", "Tier", "Viewer", "parse_tier", "parse_tiers", "quaternion_forward"]
 
 #: Engine knobs a tier may set, with their coercion (Engine.FORK_FIELDS).
-TIER_ENGINE_FIELDS = {"neighbors": int, "penetration": bool, "decay": bool, "damping": float, "power": float}
+TIER_ENGINE_FIELDS = {"neighbors": int, "penetration": bool, "projection": int, "decay": bool, "damping": float,
+                      "power": float}
 TIER_KINDS = ("synthesis", "skinned")
 
 
