@@ -25,7 +25,7 @@ from ..garment.binding import SurfaceBinding, evaluate_surface_binding, vertex_n
 from .config import TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
 from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, project_out_of_body,
-                      region_neighbours, shape_anchors, synthesize_vertices, unpose)
+                      region_neighbours, shape_anchors, skin_with_normals, synthesize_vertices, unpose)
 from .pose_models import PoseModelContext, canonical_poses, make_pose_model
 
 N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-zero regions
@@ -531,9 +531,10 @@ class Engine:
             block_push(self._zero, *blocks, state.clearances, self._clearance, self._push)
             bad = apply_push(self._push, self._normals, self.order, out)
         if self.projection_vertices is not None and not bad:
-            bad = project_out_of_body(out, self._projection_candidates, state.projection_points,
-                                      state.projection_normals, *self._projection_skin, self.transforms,
-                                      self.config.penetration_margin, self._projected, self._projected_normals)
+            skin_with_normals(state.projection_points, state.projection_normals, *self._projection_skin,
+                              self.transforms, self._projected, self._projected_normals)
+            bad = project_out_of_body(out, self._projection_candidates, self._projected, self._projected_normals,
+                                      self.config.penetration_margin)
         if bad:
             self.bad_frames += 1
             return self._buffers[self._current]

@@ -334,14 +334,10 @@ def _blended_transform(transforms, skin_indices, skin_weights, v):
     return a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz
 
 
-@numba.njit(cache=True, nogil=True)
-def project_out_of_body(out, candidates, points, normals, skin_indices, skin_weights, transforms, margin, posed,
-                        posed_normals):
-    """In place: each garment vertex out[v] (V, 3) closer than `margin` in front of (or behind) the nearest of its
-    body-vertex candidates (V, K) moves out along that vertex's normal to `margin`. The candidates index points,
-    normals (U, 3): body vertices at rest on the current shape, skinned here with their own skin_indices,
-    skin_weights (U, J) and transforms (B, 3, 4) into the scratch posed, posed_normals (U, 3). Compiled without
-    fastmath (its isfinite checks must stay). Returns the count of non-finite output vertices."""
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def skin_with_normals(points, normals, skin_indices, skin_weights, transforms, posed, posed_normals):
+    """posed, posed_normals (U, 3) = points, normals (U, 3) skinned with their own skin_indices, skin_weights (U, J)
+    and transforms (B, 3, 4); the normals rotated by the blended 3x3 and renormalised."""
     for u in range(points.shape[0]):
         a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz = _blended_transform(transforms, skin_indices,
                                                                                       skin_weights, u)
@@ -353,12 +349,18 @@ def project_out_of_body(out, candidates, points, normals, skin_indices, skin_wei
         nx = a00 * mx + a01 * my + a02 * mz
         ny = a10 * mx + a11 * my + a12 * mz
         nz = a20 * mx + a21 * my + a22 * mz
-        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if norm > 1e-12:
-            nx, ny, nz = nx / norm, ny / norm, nz / norm
-        posed_normals[u, 0] = nx
-        posed_normals[u, 1] = ny
-        posed_normals[u, 2] = nz
+        scale = 1.0 / max(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
+        posed_normals[u, 0] = nx * scale
+        posed_normals[u, 1] = ny * scale
+        posed_normals[u, 2] = nz * scale
+
+
+@numba.njit(cache=True, nogil=True)
+def project_out_of_body(out, candidates, posed, posed_normals, margin):
+    """In place: each garment vertex out[v] (V, 3) closer than `margin` in front of (or behind) the nearest of its
+    candidate body vertices (V, K), indices into posed, posed_normals (U, 3) (skin_with_normals), moves out along
+    that vertex's normal to `margin`. Compiled without fastmath (its isfinite checks must stay). Returns the count
+    of non-finite output vertices."""
     bad = 0
     for v in range(out.shape[0]):
         x, y, z = out[v, 0], out[v, 1], out[v, 2]
