@@ -412,12 +412,13 @@ def held_out_config(test_set: str = "v1", clips=None, quick: bool = False, drape
 
 def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: int = 2, progress: bool = True,
              drape: dict | None = None, pack=None, test_set: str = "v1", beta0_pack=None,
-             test_config: dict | None = None) -> dict:
+             test_config: dict | None = None, beta0: bool | None = None) -> dict:
     """Build (or reuse) the held-out set, measure every row, write report.json, trade.md and the plots.
 
     pack: file of the held-out ground-truth drapes, read when present and rewritten (see make_held_out_set).
     beta0_pack: file of the held-out poses' drapes at beta0 (evaluate.beta0), for the pose models alone at beta0:
-    read when present, else simulated for a full v1 set (10 drapes) and written.
+    read when present, else simulated and written when `beta0` says so (None: for a full v1 set, 10 drapes; a v2
+    set has 40).
     test_config: HeldOutConfig fields to override in the chosen test set (e.g. {"poses_per_clip": 1,
     "dynamic_clips": []} for a smaller one)."""
     from ..body import AnnyBody
@@ -429,6 +430,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     body = AnnyBody()
     garment = make_garment(db.garment, body, db.n_vertices)
     config = held_out_config(test_set, clips, quick, drape, test_config)
+    simulate_beta0 = (test_set == "v1" and not quick) if beta0 is None else beta0
     start = time.perf_counter()
     test = make_held_out_set(db, body, garment, config, cache, workers=workers, progress=progress, pack=pack)
     ground_truth_seconds = time.perf_counter() - start
@@ -456,7 +458,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         stability = stability_report(db, body, garment)
         temporal = temporal_report(models, [r.name for r in rows], test.dynamic)
         beta0 = []
-        if beta0_pack is not None and (Path(beta0_pack).is_file() or (test_set == "v1" and not quick)):
+        if beta0_pack is not None and (Path(beta0_pack).is_file() or simulate_beta0):
             from .beta0 import held_out_beta0
 
             drapes, poses, _ = held_out_beta0(db, body, garment, config, cache, workers=workers, progress=progress,
@@ -732,6 +734,9 @@ def main(argv=None) -> int:
                         "and dynamic sequences along 02_08 and 05_12 (see evaluate.testset.held_out_v2)")
     parser.add_argument("--test-config", default="", help="JSON object of test-set fields to override (evaluate."
                         "testset.HeldOutConfig), e.g. '{\"poses_per_clip\": 1, \"shapes_inside\": 1, \"dynamic_clips\": []}'")
+    parser.add_argument("--beta0", action="store_true", help="drape the held-out poses at beta0 too when their pack "
+                        "(<out>/ground_truth_beta0.npz) is missing, for the pose models alone at beta0 (a v1 set "
+                        "always does: 10 drapes; v2: 40)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     pack = None if args.ground_truth == "none" else (args.ground_truth or Path(args.out) / "ground_truth_drapes.npz")
@@ -740,7 +745,8 @@ def main(argv=None) -> int:
     report = evaluate(args.database, args.out, cache, clips=args.clips, quick=args.quick,
                       workers=args.workers, progress=not args.quiet,
                       drape=json.loads(args.drape) if args.drape else None, pack=pack, test_set=args.test_set,
-                      beta0_pack=beta0_pack, test_config=json.loads(args.test_config) if args.test_config else None)
+                      beta0_pack=beta0_pack, test_config=json.loads(args.test_config) if args.test_config else None,
+                      beta0=True if args.beta0 else None)
     summary = {r["name"]: {**{k: round(r[k], 4) for k in ("error_mean_cm", "error_p95_cm", "ms_per_frame")},
                            "error_mean_ci_cm": [round(x, 4) for x in r["error_mean_ci_cm"]]}
                for r in report["rows"]}
