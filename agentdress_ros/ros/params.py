@@ -44,9 +44,10 @@ PARAMETERS: dict[str, Spec] = {
                               "changed (late subscribers get a frame within 1 s at no synthesis cost); 0 = off"),
     "marker_rate_hz": Spec(0.0, "visualization_msgs/Marker TRIANGLE_LIST rate for RViz, Hz, in [0, 10]; 0 = off"),
     "status_rate_hz": Spec(1.0, "rate of the JSON status on ~/status, Hz, in (0, 50]"),
-    "inside_check_hz": Spec(0.2, "rate at which the last published garments are tested against the posed body (the "
+    "inside_check_hz": Spec(0.0, "rate at which the last published garments are tested against the posed body (the "
                                  "winding-number test of the build and the evaluation, on a background thread; "
-                                 "~/status 'inside'), Hz, in [0, 2]; 0 = off; one agent only"),
+                                 "~/status 'inside'), Hz, in [0, 2]; 0 = off (the default: each check delays the "
+                                 "ticks around it); one agent only"),
     "publish_body": Spec(False, "also publish the posed body surface on ~/body/points and ~/body/mesh, and its "
                                 "skin and bones (~/body/skin, ~/body/bones)"),
     "answer_on_arrival": Spec(True, "dress a new pose as soon as it arrives (unless within half a period of the last "
