@@ -27,7 +27,7 @@ class EngineConfig:
     projection: after Eq. 10, each garment vertex closer than penetration_margin to the nearest of its `projection`
         candidate body vertices (its nearest at rest), skinned exactly, moves out along that vertex's normal; 0 = off.
         Eq. 10 keeps the anchors' own clearances, so cloth the anchors had inside the body stays inside; this catches
-        it (README "Speed vs accuracy": truly-inside vertices a third, for ~0.05 ms at 16).
+        it (README "Speed vs accuracy": truly-inside vertices to about a quarter, for ~0.1 ms per frame at 16).
     decay: Eq. 9 damping of the region distances over frames, ratio `damping` (eta). The paper picks eta per garment
         from a residual curve it does not print; 0.5 is our default (a ~1.4-frame time constant at the frame rate).
     dtype: "float32" (default) or "float64" for the per-frame buffers; pose and weight arithmetic is always float64.

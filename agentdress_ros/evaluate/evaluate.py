@@ -185,7 +185,8 @@ class InsideTest:
         return report["inside_count"] / n, report["overlap_count"] / n, report["truly_inside_count"] / n
 
     def fraction(self, vertices) -> float:
-        return self.shares(vertices)[0]
+        """Share of the vertices (V, 3) inside the body."""
+        return float(np.mean(self.test.inside(vertices))) if len(vertices) else 0.0
 
 
 #: Garment parts the errors are reported by (vertex_parts): the skinning regions merged left with right, and the

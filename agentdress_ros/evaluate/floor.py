@@ -29,7 +29,7 @@ def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int
     from ..build.builder import run_jobs
     from ..build.jobs import DrapeJob, DrapeStore
     from ..engine import read_database
-    from ..garment.inside import inside_report
+    from ..garment.inside import BodyInside
     from ..sim.posing import visible_body
     from .evaluate import held_out_config
     from .testset import held_out_poses, held_out_shapes, static_jobs, test_set_key
@@ -68,7 +68,8 @@ def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int
         distance = np.linalg.norm(a - b, axis=1)
         shape = body.shape(job.beta)
         posed = body.posed_vertices(shape, body.pose(shape, job.pose)[0])[ids]
-        inside = [inside_report(v, posed, faces)["inside_count"] / len(v) for v in (a, b)]
+        test = BodyInside(posed, faces)
+        inside = [float(np.mean(test.inside(v))) for v in (a, b)]
         stats = [reference.stats(ref.key), store.stats(job.key)]
         cases.append({"pose": labels[job.index], "mean_cm": 100.0 * float(distance.mean()),
                       "p95_cm": 100.0 * float(np.percentile(distance, 95)),

@@ -26,35 +26,6 @@ _SURFACE_LIFT = 1.0e-3
 
 
 @numba.njit(cache=True, nogil=True)
-def _winding_numbers(points, vertices, faces, out):
-    inv_four_pi = 1.0 / (4.0 * np.pi)
-    for i in range(points.shape[0]):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        total = 0.0
-        for f in range(faces.shape[0]):
-            a0 = vertices[faces[f, 0], 0] - px
-            a1 = vertices[faces[f, 0], 1] - py
-            a2 = vertices[faces[f, 0], 2] - pz
-            b0 = vertices[faces[f, 1], 0] - px
-            b1 = vertices[faces[f, 1], 1] - py
-            b2 = vertices[faces[f, 1], 2] - pz
-            c0 = vertices[faces[f, 2], 0] - px
-            c1 = vertices[faces[f, 2], 1] - py
-            c2 = vertices[faces[f, 2], 2] - pz
-            la = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-            lb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
-            lc = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-            det = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
-            dot_ab = a0 * b0 + a1 * b1 + a2 * b2
-            dot_bc = b0 * c0 + b1 * c1 + b2 * c2
-            dot_ca = c0 * a0 + c1 * a1 + c2 * a2
-            denominator = la * lb * lc + dot_ab * lc + dot_bc * la + dot_ca * lb
-            total += 2.0 * np.arctan2(det, denominator)  # Van Oosterom & Strackee's solid angle
-        out[i] = total * inv_four_pi
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
 def _triangle_solid_angle(px, py, pz, vertices, face):
     a0 = vertices[face[0], 0] - px
     a1 = vertices[face[0], 1] - py
@@ -72,6 +43,17 @@ def _triangle_solid_angle(px, py, pz, vertices, face):
     denominator = la * lb * lc + (a0 * b0 + a1 * b1 + a2 * b2) * lc + (b0 * c0 + b1 * c1 + b2 * c2) * la \
         + (c0 * a0 + c1 * a1 + c2 * a2) * lb
     return 2.0 * np.arctan2(det, denominator)  # Van Oosterom & Strackee
+
+
+@numba.njit(cache=True, nogil=True)
+def _winding_numbers(points, vertices, faces, out):
+    inv_four_pi = 1.0 / (4.0 * np.pi)
+    for i in range(points.shape[0]):
+        total = 0.0
+        for f in range(faces.shape[0]):
+            total += _triangle_solid_angle(points[i, 0], points[i, 1], points[i, 2], vertices, faces[f])
+        out[i] = total * inv_four_pi
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -183,6 +165,10 @@ class BodyInside:
         self.tested = np.zeros(len(self.vertices), dtype=bool)
         self.overlap = np.zeros(len(self.vertices), dtype=bool)
 
+    def inside(self, points) -> np.ndarray:
+        """Mask (P,) of the points (P, 3) inside the body (no self-overlap split)."""
+        return self.field(np.asarray(points, dtype=np.float64)) > 0.5
+
     def report(self, points) -> dict:
         """{"inside": mask (P,), "in_overlap": mask (P,) of inside points within `radius` of a body vertex that lies
         inside another body part, "truly_inside": mask (P,), and the counts "inside_count", "overlap_count",
@@ -190,7 +176,7 @@ class BodyInside:
         from scipy.spatial import cKDTree
 
         points = np.asarray(points, dtype=np.float64)
-        inside = self.field(points) > 0.5
+        inside = self.inside(points)
         in_overlap = np.zeros(len(points), dtype=bool)
         if inside.any():
             near = np.unique(np.concatenate([np.asarray(ids, dtype=np.int64) for ids in
