@@ -2,7 +2,8 @@
 
 `agentdress bench node ...` (latency, rate and CPU of the node over real DDS) takes the options of
 agentdress_ros.evaluate.bench_node, `agentdress bench crowd ...` those of agentdress_ros.evaluate.bench_crowd (one
-node dressing N agents); `agentdress bench body|synth` those listed by `agentdress bench -h`. `agentdress demo
+node dressing N agents), `agentdress bench sequence ...` those of agentdress_ros.evaluate.bench_sequence (the dynamic
+ground truth's cost per mocap frame); `agentdress bench body|synth` those listed by `agentdress bench -h`. `agentdress demo
 --agents N ...` publishes a crowd (agentdress_ros.ros.crowd_demo) instead of one agent.
 """
 from __future__ import annotations
@@ -153,6 +154,10 @@ def main(argv=None) -> int:
         from .evaluate.bench_crowd import main as bench_crowd_main
 
         return bench_crowd_main(argv[2:])
+    if argv[:2] == ["bench", "sequence"]:  # the dynamic ground truth's cost per mocap frame, cheaper stepping
+        from .evaluate.bench_sequence import main as bench_sequence_main
+
+        return bench_sequence_main(argv[2:])
     if argv[:1] == ["demo"] and any(a == "--agents" or a.startswith("--agents=") for a in argv):
         from .ros.crowd_demo import crowd_main
 

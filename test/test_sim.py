@@ -270,6 +270,27 @@ def test_a_resumed_sequence_gives_the_frames_of_an_uninterrupted_run(swing_seque
 
 
 @needs_newton
+def test_stepping_variants_continue_from_the_reference_checkpoint(body, swing_sequences):
+    """`agentdress bench sequence`: every variant continues from the reference's first chunk, so the reference's
+    own continuation is the uninterrupted run, frame for frame, and a coarser stepping is measured against it."""
+    from agentdress_ros.evaluate.bench_sequence import compare_stepping
+    from agentdress_ros.sim.sequence import SequenceSettings, load_sequence
+
+    folder, garment, motion, _ = swing_sequences
+    settings = SequenceSettings(chunk_frames=3, ramp_frames=4, settle_frames=10,
+                                drape=DrapeSettings(substeps=4, iterations=2))
+    result = compare_stepping(motion, garment, body.shape().beta, body, settings,
+                              [{"graph": False}, {"substeps": 2}], chunks=2, progress=False)
+    reference, same, coarser = result["rows"]
+    assert reference["settings"] == "reference" and reference["frames"] == 4 and reference["ratio_to_reference"] == 1
+    assert same["distance_mm"]["max_vertex"] == 0.0  # moving frames never replay a graph: the same stepping
+    assert coarser["distance_mm"]["mean"] > 0.0 and coarser["seconds_per_mocap_frame"] > 0.0
+    assert np.isfinite([row["distance_mm"]["max_vertex"] for row in result["rows"]]).all()
+    whole = load_sequence(folder / garment.name / "whole")["positions"]
+    assert np.array_equal(result["reference_positions"], whole[3:])
+
+
+@needs_newton
 def test_sequence_pack_restores_the_cloth_from_rest_frame_pca(body, swing_sequences, tmp_path):
     """The pack holds rest-frame offsets (unposed with beta0's bones) as float16 PCA coefficients: skinning them
     back reproduces every simulated frame to well under a millimetre."""

@@ -71,6 +71,13 @@ def _save_atomic(path: Path, **arrays) -> None:
     os.replace(partial, path)
 
 
+def sequence_key(settings: SequenceSettings, beta, motion_name: str, n_frames: int, garment) -> str:
+    """The key every chunk of a sequence carries: a resumed run continues only chunks written under the same one."""
+    return json.dumps({"settings": settings.key(), "beta": np.round(np.asarray(beta, float), 6).tolist(),
+                       "motion": motion_name, "frames": n_frames, "garment": garment.name,
+                       "vertices": garment.n_vertices})
+
+
 def _chunks_done(folder: Path, key: str) -> int:
     """Number of consecutive complete chunks in folder written under `key` (a chunk of another key stops it)."""
     count = 0
@@ -103,9 +110,7 @@ def simulate_sequence(motion, garment, beta, folder, settings: SequenceSettings 
     rotvecs, roots = resample(motion, s.fps)
     n_frames = len(rotvecs)
     n_chunks = -(-n_frames // s.chunk_frames)
-    key = json.dumps({"settings": s.key(), "beta": np.round(np.asarray(beta, float), 6).tolist(),
-                      "motion": motion.name, "frames": n_frames, "garment": garment.name,
-                      "vertices": garment.n_vertices})
+    key = sequence_key(s, beta, motion.name, n_frames, garment)
     (folder / "sequence.json").write_text(json.dumps({"key": json.loads(key), "chunks": n_chunks}, indent=1))
     done = _chunks_done(folder, key)
     rest = garment.rest_vertices(body, shape)
