@@ -282,7 +282,7 @@ def test_stepping_variants_continue_from_the_reference_checkpoint(body, swing_se
     result = compare_stepping(motion, garment, body.shape().beta, body, settings,
                               [{"graph": False}, {"substeps": 2}], chunks=2, progress=False)
     reference, same, coarser = result["rows"]
-    assert reference["settings"] == "reference" and reference["frames"] == 4 and reference["ratio_to_reference"] == 1
+    assert reference["settings"] == "reference" and reference["frames"] == 4 and reference["ratio_to_baseline"] == 1
     assert same["distance_mm"]["max_vertex"] == 0.0  # moving frames never replay a graph: the same stepping
     assert coarser["distance_mm"]["mean"] > 0.0 and coarser["seconds_per_mocap_frame"] > 0.0
     assert np.isfinite([row["distance_mm"]["max_vertex"] for row in result["rows"]]).all()

@@ -1,12 +1,13 @@
 """`agentdress bench sequence`: what the dynamic ground truth costs per mocap frame, and what cheaper stepping gives up.
 
 One training clip (08_04 by default), one garment at beta0. The reference settings (`SequenceSettings()`: 60 fps,
-16 substeps, 2 VBD iterations) settle the garment and simulate the first chunk (30 mocap frames). Every variant then
-continues from that same checkpoint for `--chunks` more chunks, so the variants differ in the stepping of the clip
-alone, not in the settle. Per variant (JSON): seconds of wall time per 30 fps mocap frame, its ratio to the
-reference measured in the same run (the machine may be loaded: compare ratios), and the distance of every cloth
-vertex from the reference's (mean, p95 and max over frames of the per-frame mean; the max over all vertices), with
-the cloth's peak speed. A variant is a JSON object of DrapeSettings fields (`{"substeps": 8}`) applied to the clip.
+16 substeps, 2 VBD iterations) settle the garment and simulate the first chunk (30 mocap frames). The baseline (the
+reference, or with `--baseline` a finer stepping for a convergence study) and every variant then continue from that
+same checkpoint for `--chunks` more chunks, so they differ in the stepping of the clip alone, not in the settle. Per
+variant (JSON): seconds of wall time per 30 fps mocap frame, its ratio to the baseline's measured in the same run (the
+machine may be loaded: compare ratios), the distance of every cloth vertex from the baseline's (mean, p95 and max over
+frames of the per-frame mean; the max over all vertices), and the cloth's and the body's peak speed. A variant is a
+JSON object of DrapeSettings fields (`{"substeps": 8}`) applied to the clip.
 """
 from __future__ import annotations
 
@@ -41,12 +42,13 @@ def _continue(motion, garment, beta, start_folder, folder, settings, body, chunk
     return stats, load_sequence(folder)
 
 
-def compare_stepping(motion, garment, beta, body, reference, variants, chunks: int = 2,
-                     progress: bool = True) -> dict:
+def compare_stepping(motion, garment, beta, body, reference, variants, chunks: int = 2, progress: bool = True,
+                     baseline: dict | None = None) -> dict:
     """Settle and simulate the first chunk with `reference` (SequenceSettings), then continue from it `chunks` more
-    chunks with the reference and with each variant (DrapeSettings overrides). -> {"settle_seconds", "rows"}: per
+    chunks with the baseline (the reference's drape with the `baseline` DrapeSettings overrides: a finer stepping
+    for a convergence study) and with each variant (DrapeSettings overrides). -> {"settle_seconds", "rows"}: per
     row its settings, frames, seconds per mocap frame, ratio to the reference, distance from the reference's frames
-    (mm) and peak cloth / body speeds; "reference_positions" (F, V, 3), the reference's frames after the first chunk."""
+    (mm) and peak cloth / body speeds; "reference_positions" (F, V, 3), the baseline's frames after the first chunk."""
     from ..sim.sequence import simulate_sequence
     from ..sim.settings import DrapeSettings
 
@@ -57,7 +59,7 @@ def compare_stepping(motion, garment, beta, body, reference, variants, chunks: i
                           progress=progress)
         settle_seconds = time.perf_counter() - start
         results = []
-        for index, fields in enumerate([{}] + [dict(v) for v in variants]):
+        for index, fields in enumerate([dict(baseline or {})] + [dict(v) for v in variants]):
             settings = replace(reference, drape=DrapeSettings(**{**vars(reference.drape), **fields}))
             stats, frames = _continue(motion, garment, beta, root / "start", root / f"variant_{index}", settings,
                                       body, chunks)
@@ -67,13 +69,13 @@ def compare_stepping(motion, garment, beta, body, reference, variants, chunks: i
     _, base_stats, base_positions = results[0]
     base_rate = base_stats["seconds"] / base_stats["frames"]
     rows = []
-    for fields, stats, positions in results:
+    for index, (fields, stats, positions) in enumerate(results):
         distance = np.linalg.norm(positions - base_positions, axis=2)  # (F, V) m
         per_frame = distance.mean(axis=1)
         rate = stats["seconds"] / stats["frames"]
         rows.append({
-            "settings": fields or "reference", "frames": int(stats["frames"]),
-            "seconds_per_mocap_frame": round(rate, 4), "ratio_to_reference": round(rate / base_rate, 3),
+            "settings": fields or "reference", "baseline": index == 0, "frames": int(stats["frames"]),
+            "seconds_per_mocap_frame": round(rate, 4), "ratio_to_baseline": round(rate / base_rate, 3),
             "distance_mm": {"mean": round(float(per_frame.mean()) * 1e3, 3),
                             "p95_frame": round(float(np.percentile(per_frame, 95)) * 1e3, 3),
                             "max_frame": round(float(per_frame.max()) * 1e3, 3),
@@ -84,7 +86,7 @@ def compare_stepping(motion, garment, beta, body, reference, variants, chunks: i
 
 
 def bench_sequence(clip=DEFAULT_CLIP, garment_name: str = "tshirt", vertices: int = 1200, chunks: int = 2,
-                   variants=DEFAULT_VARIANTS, progress: bool = True) -> dict:
+                   variants=DEFAULT_VARIANTS, progress: bool = True, baseline: dict | None = None) -> dict:
     from ..build.jobs import _body_and_garment
     from ..motion.retarget import load_cmu_motion
     from ..sim.sequence import SequenceSettings
@@ -93,11 +95,12 @@ def bench_sequence(clip=DEFAULT_CLIP, garment_name: str = "tshirt", vertices: in
     shape = body.shape(np.zeros(6))
     motion = load_cmu_motion(str(clip), shape.heads, shape.tails)
     reference = SequenceSettings()
-    result = compare_stepping(motion, garment, shape.beta, body, reference, variants, chunks, progress)
+    result = compare_stepping(motion, garment, shape.beta, body, reference, variants, chunks, progress, baseline)
     return {"benchmark": "sequence", "clip": Path(clip).stem, "garment": garment_name,
             "garment_vertices": int(garment.n_vertices), "mocap_fps": reference.fps,
             "reference": {"fps": reference.drape.fps, "substeps": reference.drape.substeps,
                           "iterations": reference.drape.iterations},
+            "baseline": baseline or "reference",
             "settle_and_first_chunk_seconds": result["settle_seconds"], "variants": result["rows"],
             "goal_seconds_per_mocap_frame": 0.4}
 
@@ -110,13 +113,15 @@ def main(argv=None) -> int:
     parser.add_argument("--chunks", type=int, default=2, help="chunks of 30 mocap frames timed after the first")
     parser.add_argument("--variants", default=json.dumps(DEFAULT_VARIANTS),
                         help="JSON list of DrapeSettings overrides (the reference is always run)")
+    parser.add_argument("--baseline", default="{}", help="JSON DrapeSettings overrides of the stepping the variants "
+                        "are measured against ({} : the reference; {\"substeps\": 48} for a convergence study)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     from ..build.sequences import check_training_clips
 
     check_training_clips([args.clip])
     report = bench_sequence(args.clip, args.garment, args.vertices, args.chunks, json.loads(args.variants),
-                            progress=not args.quiet)
+                            progress=not args.quiet, baseline=json.loads(args.baseline))
     print(json.dumps(report, indent=2))
     return 0
 
