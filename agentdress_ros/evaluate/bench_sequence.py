@@ -12,7 +12,9 @@ JSON object of DrapeSettings fields (`{"substeps": 8}`) applied to the clip.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -120,8 +122,9 @@ def main(argv=None) -> int:
     from ..build.sequences import check_training_clips
 
     check_training_clips([args.clip])
-    report = bench_sequence(args.clip, args.garment, args.vertices, args.chunks, json.loads(args.variants),
-                            progress=not args.quiet, baseline=json.loads(args.baseline))
+    with contextlib.redirect_stdout(sys.stderr):  # warp's banner and progress lines: stdout is the JSON alone
+        report = bench_sequence(args.clip, args.garment, args.vertices, args.chunks, json.loads(args.variants),
+                                progress=not args.quiet, baseline=json.loads(args.baseline))
     print(json.dumps(report, indent=2))
     return 0
 
