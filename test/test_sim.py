@@ -287,7 +287,7 @@ def test_stepping_variants_continue_from_the_reference_checkpoint(body, swing_se
     assert coarser["distance_mm"]["mean"] > 0.0 and coarser["seconds_per_mocap_frame"] > 0.0
     assert np.isfinite([row["distance_mm"]["max_vertex"] for row in result["rows"]]).all()
     whole = load_sequence(folder / garment.name / "whole")["positions"]
-    assert np.array_equal(result["reference_positions"], whole[3:])
+    assert np.array_equal(result["baseline_positions"], whole[3:])
 
 
 @needs_newton

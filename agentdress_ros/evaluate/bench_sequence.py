@@ -49,8 +49,8 @@ def compare_stepping(motion, garment, beta, body, reference, variants, chunks: i
     """Settle and simulate the first chunk with `reference` (SequenceSettings), then continue from it `chunks` more
     chunks with the baseline (the reference's drape with the `baseline` DrapeSettings overrides: a finer stepping
     for a convergence study) and with each variant (DrapeSettings overrides). -> {"settle_seconds", "rows"}: per
-    row its settings, frames, seconds per mocap frame, ratio to the reference, distance from the reference's frames
-    (mm) and peak cloth / body speeds; "reference_positions" (F, V, 3), the baseline's frames after the first chunk."""
+    row its settings, frames, seconds per mocap frame, ratio to the baseline's, distance from the baseline's frames
+    (mm) and peak cloth / body speeds; "baseline_positions" (F, V, 3), the baseline's frames after the first chunk."""
     from ..sim.sequence import simulate_sequence
     from ..sim.settings import DrapeSettings
 
@@ -84,7 +84,7 @@ def compare_stepping(motion, garment, beta, body, reference, variants, chunks: i
                             "max_vertex": round(float(distance.max()) * 1e3, 3)},
             "max_cloth_speed": round(float(stats["max_cloth_speed"]), 3),
             "max_body_speed": round(float(stats["max_body_speed"]), 3)})
-    return {"settle_seconds": round(settle_seconds, 2), "rows": rows, "reference_positions": base_positions}
+    return {"settle_seconds": round(settle_seconds, 2), "rows": rows, "baseline_positions": base_positions}
 
 
 def bench_sequence(clip=DEFAULT_CLIP, garment_name: str = "tshirt", vertices: int = 1200, chunks: int = 2,
