@@ -42,6 +42,13 @@ PASSTHROUGH = (
 )
 
 
+# `agentdress bench <name> ...` whose options the module parses: node (publisher and node processes, rates, soak),
+# crowd (one node dressing N agents, poses from another process), sequence (the dynamic ground truth's cost per mocap
+# frame and what cheaper stepping gives up).
+BENCH_PASSTHROUGH = {"node": (".evaluate.bench_node", "main"), "crowd": (".evaluate.bench_crowd", "main"),
+                     "sequence": (".evaluate.bench_sequence", "main")}
+
+
 def _passthrough(module: str, function: str):
     """A subcommand whose options are parsed by the module it runs (demo, view, bench-node)."""
 
@@ -146,18 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:2] == ["bench", "node"]:  # its own option set: publisher and node processes, rates, soak
-        from .evaluate.bench_node import main as bench_node_main
-
-        return bench_node_main(argv[2:])
-    if argv[:2] == ["bench", "crowd"]:  # one node dressing N agents, poses from another process
-        from .evaluate.bench_crowd import main as bench_crowd_main
-
-        return bench_crowd_main(argv[2:])
-    if argv[:2] == ["bench", "sequence"]:  # the dynamic ground truth's cost per mocap frame, cheaper stepping
-        from .evaluate.bench_sequence import main as bench_sequence_main
-
-        return bench_sequence_main(argv[2:])
+    if argv[:1] == ["bench"] and argv[1:2] and argv[1] in BENCH_PASSTHROUGH:  # benchmarks with their own options
+        return _passthrough(*BENCH_PASSTHROUGH[argv[1]])(argparse.Namespace(rest=argv[2:]))
     if argv[:1] == ["demo"] and any(a == "--agents" or a.startswith("--agents=") for a in argv):
         from .ros.crowd_demo import crowd_main
 

@@ -22,22 +22,24 @@ from pathlib import Path
 
 import numpy as np
 
+from .testset import default_clip_paths
+
 __all__ = ["bench_sequence", "main"]
 
-DEFAULT_CLIP = Path(__file__).resolve().parents[2].parent / "shared" / "mocap" / "cmu" / "08_04.bvh"
+DEFAULT_CLIP = default_clip_paths()[0].parent / "08_04.bvh"  # a training clip in ../shared/mocap/cmu
 DEFAULT_VARIANTS = ({"substeps": 12}, {"substeps": 8}, {"iterations": 1}, {"collide_every": 2},
                     {"substeps": 8, "iterations": 3}, {"fps": 30.0})
 
 
 def _continue(motion, garment, beta, start_folder, folder, settings, body, chunks: int):
     """Copy the shared first chunk into `folder` under `settings`' key and simulate `chunks` more; (stats, frames)."""
-    from ..sim.sequence import load_sequence, resample, sequence_key, simulate_sequence
+    from ..sim.sequence import _save_atomic, load_sequence, resample, sequence_key, simulate_sequence
 
     folder.mkdir(parents=True)
     key = sequence_key(settings, beta, motion.name, len(resample(motion, settings.fps)[0]), garment)
     with np.load(start_folder / "chunk_0000.npz") as data:
         arrays = {name: data[name] for name in data.files}
-    np.savez(folder / "chunk_0000.npz", **{**arrays, "key": np.array(key)})
+    _save_atomic(folder / "chunk_0000.npz", **{**arrays, "key": np.array(key)})
     start = time.perf_counter()
     stats = simulate_sequence(motion, garment, beta, folder, settings, body=body, max_chunks=chunks, progress=False)
     stats["seconds"] = time.perf_counter() - start
@@ -52,7 +54,6 @@ def compare_stepping(motion, garment, beta, body, reference, variants, chunks: i
     row its settings, frames, seconds per mocap frame, ratio to the baseline's, distance from the baseline's frames
     (mm) and peak cloth / body speeds; "baseline_positions" (F, V, 3), the baseline's frames after the first chunk."""
     from ..sim.sequence import simulate_sequence
-    from ..sim.settings import DrapeSettings
 
     with tempfile.TemporaryDirectory(prefix="bench-sequence-") as tmp:
         root = Path(tmp)
@@ -62,12 +63,13 @@ def compare_stepping(motion, garment, beta, body, reference, variants, chunks: i
         settle_seconds = time.perf_counter() - start
         results = []
         for index, fields in enumerate([dict(baseline or {})] + [dict(v) for v in variants]):
-            settings = replace(reference, drape=DrapeSettings(**{**vars(reference.drape), **fields}))
+            settings = replace(reference, drape=replace(reference.drape, **fields))
             stats, frames = _continue(motion, garment, beta, root / "start", root / f"variant_{index}", settings,
                                       body, chunks)
             results.append((fields, stats, frames["positions"][reference.chunk_frames:]))
             if progress:
-                print(f"{json.dumps(fields) or 'reference'}: {stats['seconds'] / max(stats['frames'], 1):.3f} s/frame")
+                label = json.dumps(fields) if fields else "reference"
+                print(f"{label}: {stats['seconds'] / max(stats['frames'], 1):.3f} s/frame")
     _, base_stats, base_positions = results[0]
     base_rate = base_stats["seconds"] / base_stats["frames"]
     rows = []
