@@ -9,8 +9,9 @@ import h5py
 import numpy as np
 import pytest
 
-from agentdress_ros.build.regressor import (RegressorSettings, TrainingData, clip_folds, fit, pack_data, pose_dofs,
-                                            predict, store_regressor, train_database_regressor)
+from agentdress_ros.build.regressor import (RegressorSettings, TrainingData, clip_folds, example_data, fit, pack_data,
+                                            pose_dofs, predict, store_regressor, train_database_regressor,
+                                            validate_example_copies, vertex_error)
 from agentdress_ros.build.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
 from agentdress_ros.engine.engine import permute_vertices, select_database
@@ -165,6 +166,20 @@ def test_frames_that_lost_the_garment_are_left_out(database):
     assert len(kept.poses) == int((largest <= cut).sum()) < len(largest)
     assert np.abs(kept.positions - np.asarray(pack["rest"], np.float64)).max() <= cut + 1e-6
     assert len(pack_data(pack, database).poses) == len(largest)
+
+
+def test_copies_of_the_static_drapes_are_validated_on_drapes_held_out_of_training(database, frames):
+    """Each count of copies is scored on halves of the beta0 drapes that its fits never saw: with no copies the
+    score is the frames-only model's error on those drapes, and adding the other half moves the model towards them."""
+    examples = example_data(database)
+    dofs = pose_dofs(database, "all")
+    rows = validate_example_copies(frames, examples, dofs, TINY, [0, 20], folds=2)
+    assert [r["copies"] for r in rows] == [0, 20] and all(len(r["fold_errors_m"]) == 2 for r in rows)
+    frames_only, _ = fit(frames, dofs, TINY)
+    half = np.array_split(np.random.default_rng(TINY.seed).permutation(len(examples.poses)), 2)[0]
+    assert rows[0]["fold_errors_m"][0] == pytest.approx(
+        vertex_error(predict(frames_only, examples.poses[half]), examples.positions[half]))
+    assert rows[1]["validation_error_m"] < rows[0]["validation_error_m"]
 
 
 def test_command_writes_the_group_once_and_no_learning_library_at_run_time(tmp_path, database):
