@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from agentdress_ros.motion.joint_names import JOINT_NAMES
 from agentdress_ros.ros.inputs import InputRejected, PoseInput, check_shape_values
-from agentdress_ros.ros.params import ParameterError, check_garment_config, parse_garment_map, validate
+from agentdress_ros.ros.params import ParameterError, check_garment_config, engine_for, parse_garment_map, validate
 from agentdress_ros.ros.runtime import GarmentSpec, OutputGuard, SceneSpec, build_model_set
 
 # ---------------------------------------------------------------------------------------------------- pure checks
@@ -98,13 +98,22 @@ def test_parameter_validation_reasons():
                                ("engine", ["neighbors=0"], "neighbors"), ("engine", ["decay=maybe"], "true or false"),
                                ("engine", ["pose_model=neural"], "pose_model"), ("engine", ["damping=1.5"], "damping"),
                                ("engine", ["dtype=float16"], "dtype"), ("engine", ["neighbors=2", "neighbors=3"],
-                                                                        "twice")]:
+                                                                        "twice"),
+                               ("engine", ["tshirt:pose_model=neural"], "tshirt:pose_model"),
+                               ("engine", ["tshirt:neighbors=0"], "(tshirt)"), ("engine", ["bad name:decay=true"],
+                                                                              "garment:field=value"),
+                               ("engine", ["tshirt:decay=true", "tshirt:decay=false"], "twice")]:
         with pytest.raises(ParameterError, match=None) as info:
             validate(name, value)
         assert words in str(info.value), (name, value, str(info.value))
     assert validate("garment_vertices", None) == {}  # an empty YAML list arrives as "not set"
     assert validate("engine", ["pose_model=examples", "neighbors=3", "penetration=False", "components=all"]) == (
         ("components", None), ("neighbors", 3), ("penetration", False), ("pose_model", "examples"))
+    # a "garment:" prefix overrides a knob for that garment only
+    engine = validate("engine", ["pose_model=examples", "neighbors=3", "tshirt:pose_model=regressor",
+                                 "tshirt:neighbors=5"])
+    assert engine_for(engine, "tshirt") == (("neighbors", 5), ("pose_model", "regressor"))
+    assert engine_for(engine, "trousers") == (("neighbors", 3), ("pose_model", "examples"))
     assert parse_garment_map("garment_databases", ["tshirt: a.h5", ""]) == {"tshirt": "a.h5"}
     with pytest.raises(ParameterError, match="hat"):
         check_garment_config(["tshirt", "hat"], {}, ("tshirt", "trousers"))

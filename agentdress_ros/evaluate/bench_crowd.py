@@ -63,7 +63,7 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
     params = {"agents": names, "garments": list(DATABASES),
               "garment_databases": [f"{g}:{p}" for g, p in DATABASES.items()],
               "rate_hz": float(rate_hz), "status_rate_hz": 1.0, "budget_ms": float(budget_ms),
-              "lod.enabled": mode == "spread"}
+              "lod.enabled": mode == "spread", "engine": ["pose_model=examples"]}  # the configuration measured
     if realtime_priority:
         params["realtime_priority"] = int(realtime_priority)
     prefix = ["nice", "-n", str(node_nice)] if node_nice else []

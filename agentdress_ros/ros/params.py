@@ -8,8 +8,9 @@ Per-garment settings are string lists of "garment:value" entries, so a garment l
 parallel arrays in step:
     garment_vertices:  ["tshirt:3000", "trousers:8000"]   vertex budget (level of detail) of a skinned template
     garment_databases: ["tshirt:data/tshirt_default.h5"]  AgentDress database of a garment (else skinned)
-and the engine's speed/accuracy knobs (agentdress_ros.engine.EngineConfig) as "field=value" entries:
-    engine: ["pose_model=examples", "neighbors=3", "penetration=false"]
+and the engine's speed/accuracy knobs (agentdress_ros.engine.EngineConfig) as "field=value" entries, for every
+garment with a database or, prefixed with its name, for one:
+    engine: ["pose_model=examples", "neighbors=3", "penetration=false", "tshirt:pose_model=regressor"]
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from pathlib import Path
 from ..body import PHENOTYPE_NAMES
 from ..scene.lod import DEFAULT_TIER_TEXT, parse_tiers
 
-__all__ = ["PARAMETERS", "ParameterError", "Spec", "parse_garment_map", "validate"]
+__all__ = ["PARAMETERS", "ParameterError", "Spec", "engine_for", "parse_garment_map", "validate"]
 
 QOS_RELIABILITY = ("best_effort", "reliable")
 _GARMENT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")  # becomes a topic token: ~/<garment>/points
@@ -62,9 +63,11 @@ PARAMETERS: dict[str, Spec] = {
                                "the default) or santesteban (Santesteban et al. 2019, from the database's "
                                "garment_model/santesteban group; one agent only, README 'Santesteban et al.'s "
                                "system')"),
-    "engine": Spec(["pose_model=examples"], "EngineConfig knobs of the garments with a database, 'field=value': pose_model (lbs, "
-                       "examples, regressor, recurrent, kdsm), fold, neighbors, components, anchors, shape_model, penetration, projection, decay, damping, dtype "
-                       "(float32, float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
+    "engine": Spec(["pose_model=examples", "tshirt:pose_model=regressor"],
+                   "EngineConfig knobs of the garments with a database, 'field=value', or 'garment:field=value' "
+                   "for one garment: pose_model (lbs, examples, regressor, recurrent, kdsm), fold, neighbors, "
+                   "components, anchors, shape_model, penetration, projection, decay, damping, dtype (float32, "
+                   "float64), taylor (augmented, plain, zeroth); see README 'Speed vs accuracy'"),
     "display_subdivision": Spec(1, "rounds of Loop subdivision (0, 1, 2) of each garment for display, published as "
                                    "its cloud and mesh (a fixed sparse matrix after penetration handling; README "
                                    "'Display')", runtime=False),
@@ -173,29 +176,42 @@ def _engine_value(key: str, text: str):
 
 
 def parse_engine(value) -> tuple:
-    """["neighbors=3", ...] -> (("neighbors", 3), ...) sorted, checked by building an EngineConfig."""
+    """["neighbors=3", "tshirt:pose_model=regressor", ...] -> (("neighbors", 3), ("tshirt:pose_model", "regressor"),
+    ...) sorted, checked by building an EngineConfig for every garment named (engine_for gives one garment's knobs).
+    An entry "garment:field=value" overrides the field for that garment only."""
     from ..engine.config import EngineConfig
 
     fields = {}
     for entry in _string_list("engine", value):
-        key, sep, text = (part.strip() for part in entry.partition("="))
-        if not sep or not key or not text:
-            raise ParameterError(f"engine: entry {entry!r} must look like 'field=value'")
+        name, sep, text = (part.strip() for part in entry.partition("="))
+        garment, colon, key = (part.strip() for part in name.rpartition(":"))
+        if not sep or not key or not text or (colon and not _GARMENT_NAME.match(garment)):
+            raise ParameterError(f"engine: entry {entry!r} must look like 'field=value' or 'garment:field=value'")
         if key not in _ENGINE_FIELDS:
             raise ParameterError(f"engine: unknown field {key!r}; one of {', '.join(sorted(_ENGINE_FIELDS))}")
-        if key in fields:
-            raise ParameterError(f"engine: {key} appears twice")
-        fields[key] = _engine_value(key, text)
-    if "pose_model" in fields:
-        from ..engine.pose_models import POSE_MODELS
+        name = f"{garment}:{key}" if colon else key
+        if name in fields:
+            raise ParameterError(f"engine: {name} appears twice")
+        fields[name] = _engine_value(key, text)
+    from ..engine.pose_models import POSE_MODELS
 
-        if fields["pose_model"] not in POSE_MODELS:
-            raise ParameterError(f"engine: pose_model must be one of {', '.join(sorted(POSE_MODELS))}, "
-                                 f"got {fields['pose_model']!r}")
-    try:
-        EngineConfig(**fields)
-    except (TypeError, ValueError) as error:
-        raise ParameterError(f"engine: {error}") from None
+    for name, model in fields.items():
+        if name.rpartition(":")[2] == "pose_model" and model not in POSE_MODELS:
+            raise ParameterError(f"engine: {name} must be one of {', '.join(sorted(POSE_MODELS))}, got {model!r}")
+    entries = tuple(sorted(fields.items()))
+    for garment in sorted({n.rpartition(":")[0] for n in fields}):
+        try:
+            EngineConfig(**dict(engine_for(entries, garment)))
+        except (TypeError, ValueError) as error:
+            raise ParameterError(f"engine{f' ({garment})' if garment else ''}: {error}") from None
+    return entries
+
+
+def engine_for(engine: tuple, garment: str) -> tuple:
+    """One garment's EngineConfig overrides ((field, value), ...) from parse_engine's entries: the plain entries,
+    replaced by that garment's "garment:field" ones."""
+    fields = {k: v for k, v in engine if ":" not in k}
+    fields.update({k.rpartition(":")[2]: v for k, v in engine if k.rpartition(":")[0] == garment})
     return tuple(sorted(fields.items()))
 
 
