@@ -33,7 +33,7 @@ def frames(database):
     """Every 8th frame of three clips of the shipped T-shirt pack."""
     data = pack_data(load_sequence_pack(PACK), database)
     keep = np.flatnonzero(np.isin(data.groups, np.unique(data.groups)[:3]))[::8]
-    return TrainingData(data.poses[keep], data.positions[keep], data.groups[keep])
+    return data.rows(keep)
 
 
 @pytest.fixture(scope="module")
@@ -216,7 +216,7 @@ def _swap(group, name, value):
 def _frames_of(database, clip_index):
     data = pack_data(load_sequence_pack(PACK), database)
     keep = np.flatnonzero(data.groups == np.unique(data.groups)[clip_index])[::4]
-    return TrainingData(data.poses[keep], data.positions[keep], data.groups[keep])
+    return data.rows(keep)
 
 
 

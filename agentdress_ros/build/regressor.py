@@ -57,6 +57,10 @@ class TrainingData:
     positions: np.ndarray  # (F, V, 3) float64 rest-frame garment at beta0
     groups: np.ndarray  # (F,) str: clip name of each frame ("examples" for the database's drapes)
 
+    def rows(self, index) -> "TrainingData":
+        """The frames picked by `index` (indices or a boolean mask)."""
+        return TrainingData(self.poses[index], self.positions[index], self.groups[index])
+
 
 def pose_dofs(db, features: str) -> np.ndarray:
     """(I,) the pose dofs the MLP sees: every non-root joint's rotation, or those of the sensitivity distance."""
@@ -207,7 +211,7 @@ def cross_validate(frames: TrainingData, extra: TrainingData | None, dofs, setti
     errors, pca_errors, mean_errors, weights = [], [], [], []
     for held in clip_folds(np.unique(frames.groups), folds):
         test = np.isin(frames.groups, held)
-        train = TrainingData(frames.poses[~test], frames.positions[~test], frames.groups[~test])
+        train = frames.rows(~test)
         if extra is not None:
             train = join(train, extra)
         regressor, _ = fit(train, dofs, settings)
@@ -238,8 +242,7 @@ def validate_example_copies(frames: TrainingData, examples: TrainingData, dofs, 
     for count in copies:
         errors = []
         for held in parts:
-            kept = np.setdiff1d(order, held)
-            train = TrainingData(examples.poses[kept], examples.positions[kept], examples.groups[kept])
+            train = examples.rows(np.setdiff1d(order, held))
             regressor, _ = fit(join(frames, *[train] * count) if count else frames, dofs, settings)
             errors.append(vertex_error(predict(regressor, examples.poses[held]), examples.positions[held]))
         rows.append({"copies": int(count), "validation_error_m": float(np.mean(errors)),

@@ -107,7 +107,7 @@ def train(db, body, drapes_path, pack: dict, settings: SantestebanSettings, prog
     frames = pack_data(pack, db, settings.wrinkles.max_offset)
     if settings.pack_frames:
         keep = spread_frames({"rotvecs": frames.poses}, settings.pack_frames)
-        frames = TrainingData(frames.poses[keep], frames.positions[keep], frames.groups[keep])
+        frames = frames.rows(keep)
     beta0_fit = predict(fit_regressor, inputs(np.zeros((1, len(db.parents), 3)), np.asarray(db.beta0)[None]))[0]
     pack_x = inputs(frames.poses, np.repeat(np.asarray(db.beta0, dtype=np.float64)[None], len(frames.poses), 0))
     pack_y = frames.positions - rest - beta0_fit
