@@ -15,10 +15,11 @@ from agentdress_ros.build.regressor import RegressorSettings, pose_dofs, predict
 from agentdress_ros.engine import Engine, EngineConfig
 from agentdress_ros.engine.database import KDSM_ARRAYS, DatabaseError, KdsmModel, read_database
 from agentdress_ros.garment.binding import vertex_normals
-from agentdress_ros.kdsm.embedding import KdsmPoser, embed, pose_displaced, unembed
+from agentdress_ros.kdsm.embedding import KdsmPoser, embed, unembed
 from agentdress_ros.kdsm.inverse import candidate_parents, graph_laplacian, harmonic_fill, mesh_edges, prune_candidates
 from agentdress_ros.kdsm.lattice import lattice_tet_nodes, locate_lattice_tets, node_positions, signed_volumes
-from agentdress_ros.kdsm.mesh import KDSMSettings, build_kdsm, load_kdsm, save_kdsm
+from agentdress_ros.kdsm.mesh import (KDSMSettings, build_kdsm, diffused_weights, load_kdsm, save_kdsm,
+                                      spatially_ordered)
 from agentdress_ros.kdsm.model import (compare, fit_displacements, kdsm_targets, posed_kdsm, store_kdsm_model)
 from agentdress_ros.kdsm.training import pack_frames, reconstruction_table, spread_frames, training_targets
 
@@ -183,13 +184,9 @@ def test_embedding_round_trips(kdsm, body, shape, database, frames):
     for slot in range(candidates.counts.max()):
         rows = some[candidates.counts[some] > slot]
         material = candidates.material[rows, slot]
-        out = np.empty_like(material)
-        parents = np.empty(len(rows), dtype=np.int32)
-        pose_displaced(database.rest[rows].astype(np.float64), material - database.rest[rows], kdsm.origin,
-                       kdsm.spacing, kdsm.dims, kdsm.lattice_tets, kdsm.vertices, kdsm.tets, kdsm.class_inverse,
-                       kdsm.skin_indices, kdsm.skin_weights, transforms, frames.skin_indices[rows],
-                       frames.skin_weights[rows], parents, out)
-        np.testing.assert_allclose(out, drape[rows], atol=1e-7, rtol=0)
+        rest = database.rest[rows].astype(np.float64)
+        poser = KdsmPoser(kdsm, rest, frames.skin_indices[rows], frames.skin_weights[rows])
+        np.testing.assert_allclose(poser.pose(transforms, material - rest), drape[rows], atol=1e-7, rtol=0)
 
 
 def test_run_time_kernel_matches_skinning_the_whole_mesh_and_falls_back_outside(kdsm, body, shape, database):
@@ -241,6 +238,63 @@ def test_a_hollow_kdsm_leaves_out_the_deep_interior(body, shape, database):
     assert hollow.body_distance[hollow.tets].max(axis=1).min() >= -(depth + h) - 1e-9
     assert full.body_distance[full.tets].max(axis=1).min() < -(depth + h)
     assert hollow.n_tets < full.n_tets and hollow.rest_volumes().min() > 0
+
+
+def test_vertices_are_stored_in_z_order_and_the_order_leaves_the_map_alone(kdsm, body, shape, database):
+    """spatially_ordered: a KDSM with its vertices shuffled comes back in the built (Z) order, array for array, and
+    poses every garment vertex to the same place either way."""
+    assert spatially_ordered(kdsm) is kdsm  # build_kdsm already orders
+    perm = np.random.default_rng(3).permutation(len(kdsm.vertices))
+    renumber = np.empty_like(perm)
+    renumber[perm] = np.arange(len(perm))
+    shuffled = replace(kdsm, vertices=kdsm.vertices[perm], tets=renumber[kdsm.tets].astype(np.int32),
+                       skin_indices=kdsm.skin_indices[perm], skin_weights=kdsm.skin_weights[perm],
+                       body_distance=kdsm.body_distance[perm])
+    ordered = spatially_ordered(shuffled)
+    for name in ("vertices", "tets", "skin_indices", "skin_weights", "body_distance", "lattice_tets"):
+        np.testing.assert_array_equal(getattr(ordered, name), getattr(kdsm, name))
+    transforms = posed_transforms(body, shape, {"LeftArm": [0.1, 0.9, -0.3], "Spine1": [0.3, 0.0, 0.2]})
+    displacements = np.random.default_rng(4).normal(scale=0.02, size=database.rest.shape)
+    posed = [KdsmPoser(k, database.rest, database.skin_indices, database.skin_weights).pose(transforms, displacements)
+             for k in (shuffled, kdsm)]
+    np.testing.assert_allclose(posed[0], posed[1], atol=1e-12, rtol=0)
+    # the per-frame cache of skinned tet vertices: posing twice, or after another pose, gives the same frame
+    poser = KdsmPoser(kdsm, database.rest, database.skin_indices, database.skin_weights)
+    first = poser.pose(transforms, displacements).copy()
+    poser.pose(identity_transforms(body.n_bones), displacements)
+    np.testing.assert_array_equal(poser.pose(transforms, displacements), first)
+
+
+def test_weight_diffusion_keeps_the_body_weights_and_makes_the_air_harmonic():
+    """KDSMSettings.smoothing: the free vertices converge to the mean of their neighbours' weights (a harmonic
+    blend between the fixed ones), the fixed ones keep theirs, and every row sums to one."""
+    dims = np.array([6, 2, 2])
+    nodes = node_positions(np.zeros(3), 1.0, dims)
+    _, tets = lattice_tet_nodes(dims)
+    x = nodes[:, 0]
+    free = (x > 0.0) & (x < 6.0)
+    indices = np.zeros((len(nodes), 4), dtype=np.int32)
+    indices[:, 1:] = [1, 2, 3]
+    weights = np.zeros((len(nodes), 4))
+    weights[x <= 0.0, 0] = 1.0  # one end bound to bone 0, the other to bone 1, the air between free
+    weights[x >= 6.0, 1] = 1.0
+    weights[free, 2] = 1.0  # a wrong start that the diffusion must wash out
+    got_indices, got_weights = diffused_weights(tets.astype(np.int32), indices, weights, free, iterations=3000)
+    dense = np.zeros((len(nodes), 4))
+    np.put_along_axis(dense, got_indices, got_weights, axis=1)
+    np.testing.assert_allclose(dense.sum(axis=1), 1.0, atol=1e-12)
+    np.testing.assert_array_equal(dense[~free], weights[~free])
+    pairs = np.unique(np.sort(np.concatenate([tets[:, [a, b]] for a in range(4) for b in range(a + 1, 4)]), axis=1),
+                      axis=0)
+    neighbour_sum = np.zeros_like(dense)
+    np.add.at(neighbour_sum, pairs[:, 0], dense[pairs[:, 1]])
+    np.add.at(neighbour_sum, pairs[:, 1], dense[pairs[:, 0]])
+    degree = np.bincount(pairs.ravel(), minlength=len(nodes))
+    np.testing.assert_allclose(dense[free], neighbour_sum[free] / degree[free, None], atol=1e-6)
+    assert dense[free, 2].max() < 1e-6
+    # bone 1's weight grows from one end to the other
+    by_x = [dense[np.isclose(x, v), 1].mean() for v in np.unique(x)]
+    assert np.all(np.diff(by_x) > 0) and by_x[0] == 0.0 and by_x[-1] == 1.0
 
 
 def test_pruning_keeps_one_tet_per_neighbourhood():

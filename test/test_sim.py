@@ -229,6 +229,47 @@ def test_animated_collider_carries_the_cloth_out_of_where_skinning_puts_it_insid
     assert ended["truly_inside_count"] == 0
 
 
+def test_ramp_between_blends_shape_and_pose_and_stops_short_of_the_target():
+    from agentdress_ros.sim.posing import ramp_between
+
+    beta_from, beta_to = np.zeros(6), np.linspace(0.1, 0.6, 6)
+    pose_from, pose_to = np.zeros((3, 3)), np.full((3, 3), 0.3)
+    betas, poses = ramp_between(beta_from, pose_from, beta_to, pose_to, 4)
+    assert betas.shape == (4, 6) and poses.shape == (4, 3, 3)
+    np.testing.assert_allclose(betas[0], beta_from)
+    np.testing.assert_allclose(poses[0], pose_from)
+    np.testing.assert_allclose(betas[2], 0.5 * beta_to)
+    np.testing.assert_allclose(poses[3], 0.75 * pose_to)
+
+
+@needs_newton
+def test_a_warm_start_can_carry_a_finished_drape_onto_another_shape(body, arms_down):
+    """warm_ramp_frames: the body changes from the source drape's shape into the job's with the settled drape on it
+    (instead of the source's offset pasted onto the new shape's skinned garment and lifted out of the body)."""
+    from agentdress_ros.build.jobs import DrapeJob, _body_and_garment, posed_scene, run_drape_job
+    from agentdress_ros.garment.inside import inside_report
+
+    garment, pose, *_ = arms_down
+    beta0 = body.shape().beta
+    heavy = beta0.copy()
+    heavy[3] = 0.9  # weight: a larger body inside the same shirt
+    short = {"max_frames": 30, "min_frames": 8}
+    source = run_drape_job(DrapeJob("anchor", 0, 0, pose, beta0, "tshirt", 400, {**short, "ramp_frames": 8}))
+    job = DrapeJob("anchor", 0, 1, pose, heavy, "tshirt", 400, {**short, "warm_ramp_frames": 6},
+                   warm_key=source["key"], warm_pose=pose, warm_beta=beta0)
+    carried = run_drape_job(job, source["vertices"])
+    assert carried["stats"]["ramp_frames"] == 6 and carried["stats"]["pushed_out"] == 0
+    assert np.isfinite(carried["vertices"]).all()
+    job_body, job_garment = _body_and_garment("tshirt", 400)
+    _, _, heavy_body, heavy_faces = posed_scene(job_body, job_garment, heavy, pose)
+    assert inside_report(carried["vertices"], heavy_body, heavy_faces)["truly_inside_count"] == 0
+    # the transferred start of the same job (no warm ramp) is another, equally converged-or-not drape of it
+    pasted = run_drape_job(DrapeJob("anchor", 0, 1, pose, heavy, "tshirt", 400, short, warm_key=source["key"],
+                                    warm_pose=pose, warm_beta=beta0), source["vertices"])
+    assert pasted["stats"]["ramp_frames"] == 0
+    assert np.linalg.norm(pasted["vertices"] - carried["vertices"], axis=1).mean() < 0.05
+
+
 @pytest.fixture(scope="module")
 def swing_sequences(body, arms_down, tmp_path_factory):
     """A 7-frame motion (arms swinging down while the root moves 30 cm) simulated twice in chunks of 3 frames:

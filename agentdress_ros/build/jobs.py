@@ -97,26 +97,36 @@ def run_drape_job(job: DrapeJob, warm_drape: np.ndarray | None = None) -> dict:
     `warm_drape` (V, 3) is the finished drape named by `job.warm_key` (required when the job has one).
     """
     from ..sim import DrapeSettings, drape
+    from ..sim.posing import posed_surfaces, ramp_between, ramp_poses
 
     body, garment = _body_and_garment(job.garment, job.garment_vertices)
-    rest, warm, body_vertices, body_faces = posed_scene(body, garment, job.beta, job.pose)
-    if job.warm_key:
-        if warm_drape is None:
-            raise ValueError(f"job {job.key} starts from drape {job.warm_key}, which was not given")
-        source_skinned = posed_scene(body, garment, job.warm_beta, job.warm_pose)[1]
-        warm = transferred_warm_start(warm, warm_drape, source_skinned)
+    rest, skinned, body_vertices, body_faces = posed_scene(body, garment, job.beta, job.pose)
     settings = DrapeSettings(**job.settings)
-    path = {}
-    if settings.ramp_frames > 0 and not job.warm_key:
-        # animated collider: the garment starts at rest on the body at rest, where it is clean, and the body
-        # carries it into the pose (a skinned start would already sit folded into the armpit)
-        from ..sim.posing import posed_surfaces, ramp_poses
-
-        ramp = ramp_poses(job.pose, settings.ramp_frames)
-        bodies, garments = posed_surfaces(body, garment, body.shape(job.beta), ramp)
-        pinned_path = np.concatenate([garments[:, garment.pinned], warm[None, garment.pinned]])
-        path = {"body_path": bodies, "pinned_path": pinned_path}
+    if job.warm_key and warm_drape is None:
+        raise ValueError(f"job {job.key} starts from drape {job.warm_key}, which was not given")
+    keyframes = None  # (shapes, poses) the animated collider passes through before the target
+    if job.warm_key and settings.warm_ramp_frames > 0:
+        # the body changes from the source drape's shape and pose into this job's and carries the settled source
+        # drape along; a transferred offset would put cloth inside a larger body (between the thighs), where
+        # lifting it out to the nearest surface can pick the wrong side
+        betas, poses = ramp_between(job.warm_beta, job.warm_pose, job.beta, job.pose, settings.warm_ramp_frames)
+        keyframes = ([body.shape(b) for b in betas], poses)
+        warm = np.asarray(warm_drape, dtype=np.float64)
+    elif job.warm_key:
+        source_skinned = posed_scene(body, garment, job.warm_beta, job.warm_pose)[1]
+        warm = transferred_warm_start(skinned, warm_drape, source_skinned)
+    elif settings.ramp_frames > 0:
+        # the garment starts at rest on the body at rest, where it is clean, and the body carries it into the pose
+        # (a skinned start would already sit folded into the armpit)
+        keyframes = (body.shape(job.beta), ramp_poses(job.pose, settings.ramp_frames))
         warm = rest
+    else:
+        warm = skinned
+    path = {}
+    if keyframes is not None:
+        bodies, garments = posed_surfaces(body, garment, *keyframes)
+        pinned_path = np.concatenate([garments[:, garment.pinned], skinned[None, garment.pinned]])
+        path = {"body_path": bodies, "pinned_path": pinned_path}
     result = drape(warm, garment.faces, body_vertices, body_faces, settings, rest_vertices=rest,
                    pinned=garment.pinned, **path)
     stats = {k: v for k, v in asdict(result).items() if k != "vertices" and np.isscalar(v)}

@@ -9,7 +9,7 @@ closest body surface point (max 4 influences, like the body). Posing is plain li
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -26,6 +26,10 @@ class KDSMSettings:
     reach: float | None = 0.21  # m: keep only tets within this distance of the crop points (None: no crop)
     inner_depth: float | None = None  # m: drop tets deeper than this inside the body (None: keep the interior)
     sample_level: int = 3  # barycentric samples per body triangle edge for the distance and weights
+    # Jacobi iterations of weight diffusion over the tet edges for the vertices farther than one lattice step from
+    # the body (0: every vertex keeps its closest body point's weights, which jump where the closest point changes
+    # limb, as in the gap between arm and torso)
+    smoothing: int = 0
 
 
 @dataclass(frozen=True)
@@ -129,14 +133,74 @@ def build_kdsm(body, shape, settings: KDSMSettings = KDSMSettings(), crop_points
         corners = vertices[tets[np.flatnonzero(classes == c)[0]]]
         class_inverse[c] = np.linalg.inv((corners[1:] - corners[0]).T)
     volumes = signed_volumes(vertices, tets)
+    skin_indices, skin_weights = samples.skin_indices[nearest[used]], samples.skin_weights[nearest[used]]
+    if settings.smoothing > 0:
+        skin_indices, skin_weights = diffused_weights(tets, skin_indices, skin_weights, phi[used] > h,
+                                                      settings.smoothing)
     kdsm = KDSM(origin=origin, spacing=h, dims=dims, vertices=vertices, tets=tets, class_inverse=class_inverse,
-                lattice_tets=lattice_tets, skin_indices=np.ascontiguousarray(samples.skin_indices[nearest[used]]),
-                skin_weights=np.ascontiguousarray(samples.skin_weights[nearest[used]]), body_distance=phi[used],
+                lattice_tets=lattice_tets, skin_indices=np.ascontiguousarray(skin_indices, dtype=np.int32),
+                skin_weights=np.ascontiguousarray(skin_weights, dtype=np.float64), body_distance=phi[used],
                 settings=settings)
     kdsm.info.update({"tets": int(len(tets)), "vertices": int(len(vertices)), "dims": dims.tolist(),
                       "min_rest_volume": float(volumes.min()), "build_seconds": time.perf_counter() - started,
                       "settings": asdict(settings)})
-    return kdsm
+    return spatially_ordered(kdsm)
+
+
+def diffused_weights(tets, skin_indices, skin_weights, free, iterations: int, influences: int = 4) -> tuple:
+    """Skin weights (N, K) diffused over the edges of tets (T, 4): `iterations` Jacobi steps in which every `free`
+    vertex (N,) bool takes the mean of its neighbours' weights while the others keep theirs; then each vertex keeps
+    its `influences` largest weights, renormalised. Returns (indices (N, influences) int32, weights float64)."""
+    from scipy import sparse
+
+    n, k = skin_indices.shape
+    bones = int(skin_indices.max()) + 1
+    dense = sparse.csr_matrix((skin_weights.ravel(), (np.repeat(np.arange(n), k), skin_indices.ravel())),
+                              shape=(n, bones)).toarray()
+    pairs = np.concatenate([tets[:, [a, b]] for a in range(4) for b in range(a + 1, 4)])
+    pairs = np.unique(np.sort(pairs, axis=1), axis=0)
+    adjacency = sparse.coo_matrix((np.ones(2 * len(pairs)), (np.r_[pairs[:, 0], pairs[:, 1]],
+                                                             np.r_[pairs[:, 1], pairs[:, 0]])), shape=(n, n)).tocsr()
+    mean = sparse.diags(1.0 / np.maximum(np.asarray(adjacency.sum(axis=1)).ravel(), 1.0)) @ adjacency
+    free = np.asarray(free, dtype=bool)
+    for _ in range(iterations):
+        dense[free] = (mean @ dense)[free]
+    top = np.argsort(-dense, axis=1)[:, :influences]
+    weights = np.take_along_axis(dense, top, axis=1)
+    weights /= weights.sum(axis=1, keepdims=True)
+    return top.astype(np.int32), weights
+
+
+def _spread_bits(values: np.ndarray) -> np.ndarray:
+    """Each of the low 21 bits of values (int64) moved to every third bit: one axis of a 3D Morton code."""
+    v = values.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
+def spatially_ordered(kdsm: KDSM) -> KDSM:
+    """The same KDSM with its vertices in Morton (Z-curve) order of their lattice positions, tets renumbered.
+
+    The run-time kernel reads the four vertices of one tet per garment vertex; in the lattice's row-major order
+    those sit in rows far apart (the centres after all the corners), a cache miss each. In Z order the vertices of
+    a cube and of its neighbours share cache lines. Tets keep their numbers (lattice_tets stays valid); a KDSM
+    already in this order is returned as is.
+    """
+    half_steps = np.rint((kdsm.vertices - kdsm.origin) / (0.5 * kdsm.spacing)).astype(np.int64)  # corners even
+    code = (_spread_bits(half_steps[:, 0]) << np.uint64(2)) | (_spread_bits(half_steps[:, 1]) << np.uint64(1)) \
+        | _spread_bits(half_steps[:, 2])
+    order = np.argsort(code, kind="stable")
+    if np.array_equal(order, np.arange(len(order))):
+        return kdsm
+    renumber = np.empty_like(order)
+    renumber[order] = np.arange(len(order))
+    return replace(kdsm, vertices=np.ascontiguousarray(kdsm.vertices[order]),
+                   tets=np.ascontiguousarray(renumber[kdsm.tets].astype(np.int32)),
+                   skin_indices=np.ascontiguousarray(kdsm.skin_indices[order]),
+                   skin_weights=np.ascontiguousarray(kdsm.skin_weights[order]),
+                   body_distance=np.ascontiguousarray(kdsm.body_distance[order]))
 
 
 _ARRAYS = ("origin", "dims", "vertices", "tets", "class_inverse", "lattice_tets", "skin_indices", "skin_weights",

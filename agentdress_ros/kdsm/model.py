@@ -38,6 +38,7 @@ class KdsmModelSettings:
     frames: int = 2000  # pack frames spread evenly over the training clips (inverse embedding: ~0.2 s each)
     spacing: float = 0.025  # m: the KDSM's lattice step
     margin: float = 0.02  # m: shell thickness = the pack's farthest drape vertex from the posed body + margin
+    smoothing: int = 0  # KDSMSettings.smoothing: weight diffusion in the air away from the body
     clearance_frames: int = 0  # frames measured for the clearance (0: every frame of the pack)
     regressor: RegressorSettings = field(default_factory=RegressorSettings)  # PCA + MLP, as the `regressor`
 
@@ -48,8 +49,8 @@ def database_kdsm(db, body, shape, pack, settings: KdsmModelSettings) -> KDSM:
                            settings.regressor.max_offset)
     clearance = drape_clearance(body, shape, pack_frames(pack, db, body, shape, measured))
     thickness = float(clearance.max() + settings.margin)
-    kdsm = build_kdsm(body, shape, KDSMSettings(spacing=settings.spacing, thickness=thickness, reach=thickness),
-                      crop_points=db.rest)
+    kdsm = build_kdsm(body, shape, KDSMSettings(spacing=settings.spacing, thickness=thickness, reach=thickness,
+                                                smoothing=settings.smoothing), crop_points=db.rest)
     kdsm.info.update({"clearance_max_m": float(clearance.max()), "clearance_frames": int(len(measured))})
     return kdsm
 
@@ -303,7 +304,8 @@ def store_kdsm_model(source, path, model) -> Path:
 def targets_key(db_path, pack_path, settings: KdsmModelSettings, examples: bool = True,
                 max_offset: float | None = 0.5) -> dict:
     return {"database": str(db_path), "pack": str(pack_path), "frames": settings.frames, "spacing": settings.spacing,
-            "margin": settings.margin, "examples": examples, "max_offset": max_offset}
+            "margin": settings.margin, "examples": examples, "max_offset": max_offset,
+            **({"smoothing": settings.smoothing} if settings.smoothing else {})}
 
 
 def main(argv=None) -> int:
@@ -323,6 +325,8 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=defaults.frames)
     parser.add_argument("--spacing", type=float, default=defaults.spacing)
     parser.add_argument("--margin", type=float, default=defaults.margin)
+    parser.add_argument("--smoothing", type=int, default=defaults.smoothing,
+                        help="Jacobi iterations of skin-weight diffusion in the air away from the body")
     parser.add_argument("--targets", default=None, help=".npz cache of the inverse-embedded frames (and the KDSM "
                         "beside it, <name>_mesh.npz): reused when made from the same data and settings")
     parser.add_argument("--folds", type=int, default=3, help="clip folds of the comparison")
@@ -332,7 +336,8 @@ def main(argv=None) -> int:
                         "(docs/eval/ground_truth_beta0.npz; a copy is used, the file is left alone)")
     parser.add_argument("--report", default=None, help="write the report (JSON) here too")
     args = parser.parse_args(argv)
-    settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin)
+    settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin,
+                       smoothing=args.smoothing)
     reg_settings = settings.regressor
 
     started = time.perf_counter()

@@ -16,19 +16,26 @@ def visible_body(body):
 
 
 def posed_surfaces(body, garment, shape, rotvecs, root_translation=None):
-    """Body surfaces (K, N, 3) and skinned garments (K, V, 3) of K poses rotvecs (K, B, 3), root (K, 3) or None."""
+    """Body surfaces (K, N, 3) and skinned garments (K, V, 3) of K poses rotvecs (K, B, 3), root (K, 3) or None.
+
+    shape: one body shape for every pose, or a list of K shapes (a body that changes shape as it moves)."""
     from ..body.kinematics import linear_blend_skinning
 
     rotvecs = np.asarray(rotvecs, dtype=np.float64)
     roots = np.zeros((len(rotvecs), 3)) if root_translation is None else np.asarray(root_translation, np.float64)
+    shapes = list(shape) if isinstance(shape, (list, tuple)) else [shape] * len(rotvecs)
+    if len(shapes) != len(rotvecs):
+        raise ValueError(f"{len(shapes)} shapes for {len(rotvecs)} poses")
     ids, _ = visible_body(body)
-    rest = garment.rest_vertices(body, shape)
     bodies = np.empty((len(rotvecs), len(ids), 3))
-    garments = np.empty((len(rotvecs),) + rest.shape)
-    for k, (pose, root) in enumerate(zip(rotvecs, roots)):
-        transforms, _ = body.pose(shape, pose, root)
-        bodies[k] = body.posed_vertices(shape, transforms)[ids]
-        linear_blend_skinning(rest, garment.skin_indices, garment.skin_weights, transforms, garments[k])
+    garments = np.empty((len(rotvecs), garment.n_vertices, 3))
+    rests: dict = {}  # the garment's rest shape, once per distinct body shape
+    for k, (pose, root, current) in enumerate(zip(rotvecs, roots, shapes)):
+        if id(current) not in rests:
+            rests[id(current)] = garment.rest_vertices(body, current)
+        transforms, _ = body.pose(current, pose, root)
+        bodies[k] = body.posed_vertices(current, transforms)[ids]
+        linear_blend_skinning(rests[id(current)], garment.skin_indices, garment.skin_weights, transforms, garments[k])
     return bodies, garments
 
 
@@ -40,3 +47,18 @@ def ramp_poses(pose, frames: int) -> np.ndarray:
     """
     t = np.arange(frames, dtype=np.float64) / max(frames, 1)
     return t[:, None, None] * np.asarray(pose, dtype=np.float64)[None]
+
+
+def ramp_between(beta_from, pose_from, beta_to, pose_to, frames: int) -> tuple:
+    """(betas (frames, S), poses (frames, B, 3)) from one body shape and pose towards another, excluding the
+    target: the keyframes that carry a finished drape onto another shape or a nearby pose.
+
+    Shape parameters and rotation vectors are blended linearly; for a pose from a nearby frame (or the same pose on
+    another shape) the rotation vectors differ little, where this is close to a slerp per bone.
+    """
+    t = (np.arange(frames, dtype=np.float64) / max(frames, 1))[:, None]
+    beta_from, beta_to = np.asarray(beta_from, dtype=np.float64), np.asarray(beta_to, dtype=np.float64)
+    pose_from, pose_to = np.asarray(pose_from, dtype=np.float64), np.asarray(pose_to, dtype=np.float64)
+    betas = beta_from[None] + t * (beta_to - beta_from)[None]
+    poses = pose_from[None] + t[:, :, None] * (pose_to - pose_from)[None]
+    return betas, poses

@@ -79,6 +79,11 @@ class DrapeSettings:
                           the target pose before settling (`drape(body_path=...)`); 0, the default, keeps the
                           static collider the shipped databases were built with. Drapes from the skinned garment
                           only: a warm start from a finished drape starts in the pose.
+      warm_ramp_frames    for a drape warm-started from another drape (another shape in the same pose, the previous
+                          frame of a sequence): frames over which the body moves from the source drape's shape and
+                          pose into this drape's, the cloth starting as the source drape itself. 0, the default,
+                          transfers the source's offset onto this drape's skinned garment instead and lifts out the
+                          vertices that land inside the body (the static collider).
     Stopping:
       max_frames          frame budget, 360 (6 s simulated); a drape that hits it reports converged=False.
       min_frames          never stop before this frame, 10 (gravity needs a few frames to act on a warm start).
@@ -124,6 +129,7 @@ class DrapeSettings:
     velocity_retention: float = 0.9
 
     ramp_frames: int = 0
+    warm_ramp_frames: int = 0
     max_frames: int = 360
     min_frames: int = 10
     speed_percentile: float = 99.0
