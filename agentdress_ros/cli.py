@@ -3,7 +3,9 @@
 `agentdress bench node ...` (latency, rate and CPU of the node over real DDS) takes the options of
 agentdress_ros.evaluate.bench_node, `agentdress bench crowd ...` those of agentdress_ros.evaluate.bench_crowd (one
 node dressing N agents), `agentdress bench sequence ...` those of agentdress_ros.evaluate.bench_sequence (the dynamic
-ground truth's cost per mocap frame); `agentdress bench body|synth` those listed by `agentdress bench -h`. `agentdress demo
+ground truth's cost per mocap frame), `agentdress bench pose-models ...` those of
+agentdress_ros.evaluate.bench_pose_models (the engine's cost per frame with each pose model on a real database);
+`agentdress bench body|synth` those listed by `agentdress bench -h`. `agentdress demo
 --agents N ...` publishes a crowd (agentdress_ros.ros.crowd_demo) instead of one agent.
 """
 from __future__ import annotations
@@ -44,9 +46,10 @@ PASSTHROUGH = (
 
 # `agentdress bench <name> ...` whose options the module parses: node (publisher and node processes, rates, soak),
 # crowd (one node dressing N agents, poses from another process), sequence (the dynamic ground truth's cost per mocap
-# frame and what cheaper stepping gives up).
+# frame and what cheaper stepping gives up), pose-models (the engine's cost per frame with each pose model).
 BENCH_PASSTHROUGH = {"node": (".evaluate.bench_node", "main"), "crowd": (".evaluate.bench_crowd", "main"),
-                     "sequence": (".evaluate.bench_sequence", "main")}
+                     "sequence": (".evaluate.bench_sequence", "main"),
+                     "pose-models": (".evaluate.bench_pose_models", "main")}
 
 
 def _passthrough(module: str, function: str):

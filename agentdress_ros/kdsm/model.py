@@ -334,6 +334,9 @@ def main(argv=None) -> int:
                         "clips of the pack; with --beta0-pack also the evaluation's held-out poses at beta0)")
     parser.add_argument("--beta0-pack", default=None, help="packed drapes of the held-out poses at beta0 "
                         "(docs/eval/ground_truth_beta0.npz; a copy is used, the file is left alone)")
+    parser.add_argument("--beta0-test-set", choices=("v1", "v2"), default="v1",
+                        help="the held-out set whose poses --beta0-pack holds (v2: docs/eval/v2/<garment>/"
+                        "ground_truth_beta0.npz, 40 poses)")
     parser.add_argument("--report", default=None, help="write the report (JSON) here too")
     args = parser.parse_args(argv)
     settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin,
@@ -378,7 +381,7 @@ def main(argv=None) -> int:
         report["clip_folds"] = compare(kdsm, db, targets, dofs, reg_settings, args.folds)
         if args.beta0_pack:
             report["test_set_beta0"] = beta0_comparison(kdsm, db, body, shape, targets, dofs, reg_settings,
-                                                        args.beta0_pack)
+                                                        args.beta0_pack, args.beta0_test_set)
         from ..evaluate.testset import HeldOutConfig, default_clip_paths, held_out_poses
 
         _, _, sequence, _ = held_out_poses(body, HeldOutConfig(clips=default_clip_paths()[:1]))
@@ -391,22 +394,22 @@ def main(argv=None) -> int:
     return 0
 
 
-def beta0_comparison(kdsm, db, body, shape, targets, dofs, settings, pack) -> dict:
+def beta0_comparison(kdsm, db, body, shape, targets, dofs, settings, pack, test_set: str = "v1") -> dict:
     """test_set_errors on the evaluation's held-out poses at beta0 (evaluate.beta0, from a copy of the packed
-    drapes: nothing is draped when the pack holds them all)."""
+    drapes: nothing is draped when the pack holds them all) of held-out set `test_set` ("v1" or "v2")."""
     import shutil
     import tempfile
 
     from ..evaluate.beta0 import held_out_beta0
-    from ..evaluate.testset import HeldOutConfig, default_clip_paths
+    from ..evaluate.testset import HeldOutConfig, default_clip_paths, held_out_v2
     from ..garment import make_garment
 
     garment = make_garment(db.garment, body, db.n_vertices)
+    config = held_out_v2() if test_set == "v2" else HeldOutConfig(clips=default_clip_paths())
     with tempfile.TemporaryDirectory() as folder:
         copy = Path(folder) / "ground_truth_beta0.npz"
         shutil.copyfile(pack, copy)
-        drapes, poses, labels = held_out_beta0(db, body, garment, HeldOutConfig(clips=default_clip_paths()),
-                                               Path(folder) / "cache", workers=0, progress=False, pack=copy)
+        drapes, poses, labels = held_out_beta0(db, body, garment, config, Path(folder) / "cache", workers=0, progress=False, pack=copy)
     out = test_set_errors(kdsm, db, body, shape, targets, dofs, settings, poses, drapes)
     out.pop("models")
     out["labels"] = labels
