@@ -187,6 +187,8 @@ def test_fast_frames_get_the_substeps_that_keep_the_body_within_one_step():
     assert SequenceSettings(max_body_step=0.004).substeps(body, moved) == 25
     assert SequenceSettings(max_body_step=0.004).substeps(body, body + 0.001) == DrapeSettings().substeps
     assert "max_body_step" not in SequenceSettings().key() and "max_body_step" in SequenceSettings(max_body_step=0.03).key()
+    # knobs added later leave the key of sequences simulated before them alone (their chunks resume)
+    assert "warm_ramp_frames" not in SequenceSettings().key()
 
 
 @pytest.fixture(scope="module")

@@ -48,6 +48,8 @@ class SequenceSettings:
         fields = asdict(self)
         if not self.max_body_step:  # sequences from before the knob keep their key
             fields.pop("max_body_step")
+        if not self.drape.warm_ramp_frames:  # nor does a drape knob sequences never use change it
+            fields["drape"].pop("warm_ramp_frames")
         return json.dumps(fields, sort_keys=True)
 
     def substeps(self, body_from, body_to) -> int:
