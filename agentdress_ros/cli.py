@@ -36,6 +36,7 @@ PASSTHROUGH = (
     ("floor", ".evaluate.floor", "main", "the ground truth's own spread: held-out cases draped along another valid "
      "path"),
     ("sequences", ".build.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),
+    ("settle", ".build.settled", "main", "settle dynamic training frames into static drapes (resumable) and pack them"),
     ("regressor", ".build.regressor", "main", "train the regressor pose model from a sequence pack into a database"),
     ("recurrent", ".build.recurrent", "main", "train the recurrent pose model (a GRU over the regressor's inputs) "
      "into a database"),

@@ -182,6 +182,42 @@ def test_copies_of_the_static_drapes_are_validated_on_drapes_held_out_of_trainin
     assert rows[1]["validation_error_m"] < rows[0]["validation_error_m"]
 
 
+def test_settled_drapes_come_from_the_training_frames_and_join_the_regressor_data(tmp_path, database):
+    """`agentdress settle`: frames of the sequence pack settle into static drapes with the body held still, starting
+    where the dynamic simulation left the cloth (nothing lifted out); their pack reads like a sequence pack and
+    `agentdress regressor --settled` trains on copies of them under their source clips. A rerun drapes nothing."""
+    from agentdress_ros.build.jobs import DrapeStore
+    from agentdress_ros.build.regressor import training_frames, training_key
+    from agentdress_ros.build.settled import settle_pack
+
+    out = tmp_path / "settled.npz"
+    report = settle_pack(DATABASE, PACK, out, 2, workers=0, progress=False, drape={"max_frames": 12, "min_frames": 4})
+    assert report["drapes"] == 2 and report["clips"] == 2 and report["rest_frame_error_mean_m"] < 1e-4
+    source, settled = load_sequence_pack(PACK), load_sequence_pack(out)
+    picked = [0, len(source["rotvecs"]) - 1]  # two frames spread over the pack: its first and last
+    np.testing.assert_array_equal(settled["rotvecs"], source["rotvecs"][picked])
+    assert [str(settled["clips"][c]) for c in settled["clip"]] == [str(source["clips"][c]) for c in source["clip"][picked]]
+    assert not settled["cloth_speed"].any() and not settled["root_velocity"].any()
+    store = DrapeStore(tmp_path / "settled.npz.work" / "drapes")
+    stats = [store.stats(f"settled_{f:04d}_00") for f in picked]
+    assert all(s["ramp_frames"] == 1 and s["pushed_out"] == 0 and 0 < s["displacement_mean"] < 0.05 for s in stats)
+    # the stored offsets are the drapes unposed with beta0's bones (up to the pack's float16 coefficients)
+    data = pack_data(settled, database)
+    assert np.abs(data.positions - (settled["rest"] + settled["offsets"])).max() < 1e-6
+    moved = np.linalg.norm(settled["offsets"] - source["offsets"][picked], axis=2).mean(axis=1)
+    np.testing.assert_allclose(moved, [s["displacement_mean"] for s in stats], rtol=0.5)  # unposing keeps lengths
+    mtime = out.stat().st_mtime_ns
+    again = settle_pack(DATABASE, PACK, out, 2, workers=0, progress=False, drape={"max_frames": 12, "min_frames": 4})
+    assert again["cpu_seconds"] == report["cpu_seconds"] and out.stat().st_mtime_ns >= mtime
+    settings = replace(TINY, settled_copies=3)
+    frames, _ = training_frames(PACK, database, settings, out)
+    plain, _ = training_frames(PACK, database, TINY, out)  # no copies asked: the settled pack is not read
+    assert len(frames.poses) == len(plain.poses) + 3 * 2
+    np.testing.assert_array_equal(frames.groups[-2:], data.groups)
+    assert training_key(PACK, database, settings, out) != training_key(PACK, database, TINY, out)
+    assert training_key(PACK, database, TINY, out) == training_key(PACK, database, TINY)
+
+
 def test_command_writes_the_group_once_and_no_learning_library_at_run_time(tmp_path, database):
     """Training into a database is idempotent; a frame with the stored regressor imports no sklearn/torch/jax."""
     path = write_database(tmp_path / "db.h5", database)

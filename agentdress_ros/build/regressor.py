@@ -49,6 +49,8 @@ class RegressorSettings:
     max_offset: float = 0.5  # metres: frames in which a vertex strays further than this from its skinned place (in
     # the rest frame) are left out - a simulation that lost the garment (trousers off the hips in the dance clips),
     # not a drape to learn
+    settled_copies: int = 0  # copies of the settled static drapes (build.settled) among the frames, when a settled
+    # pack is given (0: none given)
 
 
 @dataclass
@@ -250,21 +252,37 @@ def validate_example_copies(frames: TrainingData, examples: TrainingData, dofs, 
     return rows
 
 
-def training_key(pack_path, db, settings: RegressorSettings) -> str:
-    """What the trained weights depend on: the pack's arrays, the database's drapes used, settings, sklearn."""
+def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) -> str:
+    """What the trained weights depend on: the packs' arrays, the database's drapes used, settings, sklearn."""
     import sklearn
 
     digest = hashlib.sha256()
-    with np.load(pack_path) as data:
-        for name in ("coefficients", "basis", "mean", "scale", "rotvecs", "clip", "clips", "rest"):
-            digest.update(np.ascontiguousarray(data[name]).tobytes())
+    for path in [pack_path] + ([settled_path] if settled_path and settings.settled_copies else []):
+        with np.load(path) as data:
+            for name in ("coefficients", "basis", "mean", "scale", "rotvecs", "clip", "clips", "rest"):
+                digest.update(np.ascontiguousarray(data[name]).tobytes())
     if settings.examples:
         digest.update(np.ascontiguousarray(db.example_drapes).tobytes())
         digest.update(np.ascontiguousarray(db.example_poses).tobytes())
     inputs = {"clip": INPUT_CLIP, "min_std": MIN_INPUT_STD}  # how inputs are prepared: a change retrains
-    digest.update(json.dumps({**asdict(settings), "sklearn": sklearn.__version__, "inputs": inputs},
-                             sort_keys=True).encode())
+    fields = asdict(settings)
+    if not settings.settled_copies:  # regressors trained before settled drapes existed keep their key
+        fields.pop("settled_copies")
+    digest.update(json.dumps({**fields, "sklearn": sklearn.__version__, "inputs": inputs}, sort_keys=True).encode())
     return digest.hexdigest()[:16]
+
+
+def training_frames(pack_path, db, settings: RegressorSettings, settled_path=None) -> tuple:
+    """(frames, frames left out): the pack's frames and, with a settled pack (build.settled) and
+    settings.settled_copies, that many copies of its static drapes, each under its source clip's name (so a clip
+    held out in validation takes its settled drapes with it)."""
+    pack = load_sequence_pack(pack_path)
+    frames = pack_data(pack, db, settings.max_offset)
+    dropped = len(pack["offsets"]) - len(frames.poses)
+    if settled_path and settings.settled_copies:
+        frames = join(frames, *[pack_data(load_sequence_pack(settled_path), db, settings.max_offset)]
+                      * settings.settled_copies)
+    return frames, dropped
 
 
 def store_in_database(path, write, source=None) -> Path:
@@ -288,19 +306,17 @@ def store_regressor(path, regressor: Regressor) -> Path:
 
 
 def train_database_regressor(db_path, pack_path, settings: RegressorSettings, folds: int = 3, force: bool = False,
-                             progress: bool = True) -> dict:
+                             progress: bool = True, settled_path=None) -> dict:
     """Cross-validate by clip, train on every training clip, and store the regressor in the database (idempotent)."""
     from tqdm import tqdm
 
     db = read_database(db_path)
-    key = training_key(pack_path, db, settings)
+    key = training_key(pack_path, db, settings, settled_path)
     if db.regressor is not None and db.regressor.info.get("key") == key and not force:
         return {"database": str(db_path), "skipped": "a regressor trained from the same data and settings is "
                 "stored already", **db.regressor.info}
     bar = tqdm(total=folds + 2, desc="regressor", unit="fit", disable=not progress)
-    pack = load_sequence_pack(pack_path)
-    frames = pack_data(pack, db, settings.max_offset)
-    dropped = len(pack["offsets"]) - len(frames.poses)
+    frames, dropped = training_frames(pack_path, db, settings, settled_path)
     extra = join(*[example_data(db)] * settings.examples) if settings.examples else None
     bar.update()
     dofs = pose_dofs(db, settings.features)
@@ -311,6 +327,7 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
     bar.close()
     train_error = vertex_error(predict(regressor, frames.poses), frames.positions)
     info = {**regressor.info, "key": key, "pack": str(pack_path), "clips": sorted(set(frames.groups.tolist())),
+            **({"settled_pack": str(settled_path)} if settled_path and settings.settled_copies else {}),
             "pack_frames": int(len(frames.poses)), "frames_left_out": int(dropped),
             "example_drapes": int(len(db.example_poses)) if extra is not None else 0,
             "training_error_m": train_error, **report}
@@ -327,6 +344,9 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--database", required=True, help="database file to write the regressor into")
     parser.add_argument("--pack", required=True, help="sequence pack of the training clips (agentdress sequences)")
+    parser.add_argument("--settled", default=None, help="pack of static drapes settled from the training frames "
+                        "(agentdress settle), trained on beside the pack's frames")
+    parser.add_argument("--settled-copies", type=int, default=1, help="copies of the settled drapes (with --settled)")
     defaults = RegressorSettings()
     parser.add_argument("--components", type=int, default=defaults.components)
     parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden))
@@ -347,17 +367,18 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     settings = RegressorSettings(components=args.components, hidden=tuple(args.hidden), activation=args.activation,
                                  alpha=args.alpha, features=args.features, examples=args.examples,
-                                 max_iter=args.max_iter, seed=args.seed, max_offset=args.max_offset)
+                                 max_iter=args.max_iter, seed=args.seed, max_offset=args.max_offset,
+                                 settled_copies=args.settled_copies if args.settled else 0)
     if args.validate_examples:
         db = read_database(args.database)
-        frames = pack_data(load_sequence_pack(args.pack), db, settings.max_offset)
+        frames, _ = training_frames(args.pack, db, settings, args.settled)
         rows = validate_example_copies(frames, example_data(db), pose_dofs(db, settings.features), settings,
                                        args.validate_examples)
         json.dump({"database": args.database, "pack": args.pack, "copies": rows}, sys.stdout, indent=1)
         print()
         return 0
     report = train_database_regressor(args.database, args.pack, settings, folds=args.folds, force=args.force,
-                                      progress=not args.quiet)
+                                      progress=not args.quiet, settled_path=args.settled)
     json.dump(report, sys.stdout, indent=1)
     print()
     return 0

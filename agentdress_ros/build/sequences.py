@@ -158,6 +158,32 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
         body_speed.append(data["body_speed"])
         clip_ids.append(np.full(len(data["frames"]), c, dtype=np.int16))
         frame_ids.append(data["frames"].astype(np.int32))
+    fields = {"rotvecs": np.concatenate(poses), "root_translation": np.concatenate(roots),
+              "root_velocity": np.concatenate(velocities), "cloth_speed": np.concatenate(cloth_speed),
+              "body_speed": np.concatenate(body_speed), "clip": np.concatenate(clip_ids),
+              "frame": np.concatenate(frame_ids)}
+    matrix = np.asarray(offsets, dtype=np.float64)
+    error, explained, k = write_pack(out, garment_name, garment_vertices, shape.beta, rest, garment.faces, matrix,
+                                     fields, names, complete, components)
+    return {"pack": str(out), "bytes": out.stat().st_size, "clips": len(names),
+            "clips_part_way": [n for n, done in zip(names, complete) if not done], "frames": len(matrix),
+            "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean()),
+            "rest_frame_error_max_m": float(error.max()),
+            "inside_per_frame": dict(zip(("all", "in_self_overlap", "truly_inside"),
+                                         np.mean(inside, axis=0).round(2).tolist())),
+            "inside_frames_tested": len(inside),
+            "max_cloth_speed": float(np.concatenate(cloth_speed).max()),
+            "max_body_speed": float(np.concatenate(body_speed).max())}
+
+
+def write_pack(out, garment_name: str, garment_vertices: int, beta, rest, faces, offsets, fields: dict, names,
+               complete, components: int) -> tuple:
+    """Write a pack (the module docstring's format) atomically: offsets (F, 3V) rest-frame offsets as float16 PCA
+    coefficients of `components` components (each scaled to its range) plus the float32 basis; `fields` the per-frame
+    arrays (rotvecs (F, B, 3), root_translation, root_velocity (F, 3), cloth_speed, body_speed (F,), clip (F,)
+    indices into `names`, frame (F,)); complete (C,) whether each clip is whole. Returns (rest-frame error of the
+    stored offsets (F, V) metres, explained variance, components kept)."""
+    out = Path(out)
     matrix = np.asarray(offsets, dtype=np.float64)
     mean = matrix.mean(axis=0)
     k = min(components, len(matrix) - 1, matrix.shape[1])
@@ -168,31 +194,20 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     coefficients16 = (coefficients / scale).astype(np.float16)
     restored = (coefficients16.astype(np.float64) * scale) @ basis + mean
     error = np.linalg.norm((restored - matrix).reshape(len(matrix), -1, 3), axis=2)
+    per_frame = {name: np.asarray(fields[name], dtype=np.float32) for name in
+                 ("rotvecs", "root_translation", "root_velocity", "cloth_speed", "body_speed")}
     partial = out.with_name(out.name + ".partial")
     with open(partial, "wb") as handle:
         np.savez_compressed(
             handle, garment=np.array(garment_name), garment_vertices=np.array(garment_vertices),
-            beta=shape.beta, rest=rest.astype(np.float32), faces=garment.faces.astype(np.int32),
+            beta=np.asarray(beta), rest=np.asarray(rest, dtype=np.float32), faces=np.asarray(faces, dtype=np.int32),
             mean=mean.astype(np.float32), basis=basis.astype(np.float32), scale=scale.astype(np.float32),
-            coefficients=coefficients16, rotvecs=np.concatenate(poses).astype(np.float32),
-            root_translation=np.concatenate(roots).astype(np.float32),
-            root_velocity=np.concatenate(velocities).astype(np.float32),
-            cloth_speed=np.concatenate(cloth_speed).astype(np.float32),
-            body_speed=np.concatenate(body_speed).astype(np.float32),
-            clip=np.concatenate(clip_ids), frame=np.concatenate(frame_ids), clips=np.array(names),
-            clip_complete=np.array(complete, dtype=bool))
+            coefficients=coefficients16, clip=np.asarray(fields["clip"], dtype=np.int16),
+            frame=np.asarray(fields["frame"], dtype=np.int32), clips=np.array(names),
+            clip_complete=np.array(complete, dtype=bool), **per_frame)
     out.parent.mkdir(parents=True, exist_ok=True)
     partial.replace(out)
-    explained = float((singular[:k] ** 2).sum() / (singular ** 2).sum())
-    return {"pack": str(out), "bytes": out.stat().st_size, "clips": len(names),
-            "clips_part_way": [n for n, done in zip(names, complete) if not done], "frames": len(matrix),
-            "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean()),
-            "rest_frame_error_max_m": float(error.max()),
-            "inside_per_frame": dict(zip(("all", "in_self_overlap", "truly_inside"),
-                                         np.mean(inside, axis=0).round(2).tolist())),
-            "inside_frames_tested": len(inside),
-            "max_cloth_speed": float(np.concatenate(cloth_speed).max()),
-            "max_body_speed": float(np.concatenate(body_speed).max())}
+    return error, float((singular[:k] ** 2).sum() / (singular ** 2).sum()), k
 
 
 def clips_to_simulate(clips, pack, folder) -> list:

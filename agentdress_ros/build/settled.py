@@ -1,0 +1,125 @@
+"""Static drapes settled from the dynamic training frames: more of the kind of cloth the held-out set holds.
+
+    agentdress settle --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz --frames 500 \
+        --out data/tshirt_settled.npz [--workers 2]
+
+The held-out ground truth and the anchors are static drapes: the cloth hangs at rest on a body standing still. The
+dense training frames are dynamic: the cloth swings and lags. A pose model trained on both sees 40 static drapes
+beside 9,000 moving ones. This turns `frames` of the dynamic frames (spread evenly over the pack, so over its
+training clips) into static drapes: the frame's garment, in the frame's pose at beta0, settles with the body held
+still (about 100 frames, 10 s at 1,200 vertices; nothing is lifted out of the body first, the cloth starts where
+the dynamic simulation left it). The result is a pack of the same format as the sequences' (build.sequences), one
+"frame" per drape with its source clip and frame and zero speeds, which `agentdress regressor --pack` reads beside
+the sequences.
+
+Each drape is one build job (build.jobs, `warm_ramp_frames` 1: the start is the frame itself), run on the build's
+Dask machinery and written atomically under `<out>.work/`, so a killed run loses at most the drapes in flight.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+#: Settling from a dynamic frame is a warm start: near equilibrium, so the warm drapes' extra drag applies.
+SETTLE_DRAPE = {"velocity_retention": 0.75, "warm_ramp_frames": 1}
+
+
+def settle_jobs(pack: dict, db, frames, drape: dict | None = None) -> tuple:
+    """(jobs, starts): one DrapeJob per pack frame index in `frames`, warm-started from the frame's own garment
+    (starts: {"dynamic_<frame>_00": posed garment (V, 3)}, the pack's rest-frame offsets skinned at beta0).
+    drape: DrapeSettings overrides on top of SETTLE_DRAPE."""
+    from ..body import AnnyBody
+    from ..kdsm.training import pack_frames
+    from .jobs import DrapeJob
+
+    body = AnnyBody()
+    shape = body.shape(db.beta0)
+    beta0 = np.asarray(db.beta0, dtype=np.float64)
+    garments = pack_frames(pack, db, body, shape, frames)
+    jobs, starts = [], {}
+    for n, f in enumerate(np.asarray(frames, dtype=np.int64)):
+        pose = np.asarray(pack["rotvecs"][f], dtype=np.float64)
+        start_key = f"dynamic_{f:04d}_00"
+        starts[start_key] = garments.drapes[n]
+        jobs.append(DrapeJob("settled", int(f), 0, pose, beta0, db.garment, db.n_vertices,
+                             {**SETTLE_DRAPE, **(drape or {})},
+                             warm_key=start_key, warm_pose=pose, warm_beta=beta0))
+    return jobs, starts
+
+
+def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress: bool = True,
+                components: int = 64, drape: dict | None = None) -> dict:
+    """Settle `count` frames of the pack (see the module docstring), resumably; write the pack `out`; a report."""
+    from ..body import AnnyBody
+    from ..engine.database import read_database
+    from ..engine.kernels import unpose
+    from ..kdsm.training import spread_frames
+    from .builder import run_jobs
+    from .jobs import DrapeStore
+    from .sequences import check_training_clips, load_sequence_pack, write_pack
+
+    db = read_database(db_path)
+    pack = load_sequence_pack(pack_path)
+    check_training_clips([str(c) for c in pack["clips"]])
+    frames = spread_frames(pack, count)
+    jobs, starts = settle_jobs(pack, db, frames, drape)
+    store = DrapeStore(Path(str(out) + ".work") / "drapes")
+    for key, start in starts.items():
+        if not store.has(key):
+            store.save({"key": key, "vertices": start, "stats": {}})
+    run_jobs(jobs, store, workers=workers, progress=progress)
+    body = AnnyBody()
+    shape = body.shape(db.beta0)
+    rest = np.asarray(pack["rest"], dtype=np.float64)
+    skin_i = np.ascontiguousarray(db.skin_indices, dtype=np.int32)
+    skin_w = np.ascontiguousarray(db.skin_weights, dtype=np.float64)
+    offsets, unposed, stats = [], np.empty_like(rest), []
+    for job in jobs:
+        transforms, _ = body.pose(shape, job.pose, np.zeros(3))
+        unpose(store.load(job.key), skin_i, skin_w, transforms, unposed)
+        offsets.append((unposed - rest).ravel())
+        stats.append(store.stats(job.key))
+    n = len(jobs)
+    fields = {"rotvecs": pack["rotvecs"][frames], "root_translation": np.zeros((n, 3)),
+              "root_velocity": np.zeros((n, 3)), "cloth_speed": np.zeros(n), "body_speed": np.zeros(n),
+              "clip": pack["clip"][frames], "frame": pack["frame"][frames]}
+    names = [str(c) for c in pack["clips"]]
+    error, explained, k = write_pack(out, str(pack["garment"]), int(pack["garment_vertices"]), pack["beta"], rest,
+                                     pack["faces"], np.asarray(offsets), fields, names, [True] * len(names),
+                                     components)
+    moved = [s["displacement_mean"] for s in stats]
+    return {"pack": str(out), "bytes": Path(out).stat().st_size, "drapes": n, "source": str(pack_path),
+            "clips": int(len(np.unique(fields["clip"]))), "converged": int(sum(s["converged"] for s in stats)),
+            "frames_median": float(np.median([s["frames"] for s in stats])),
+            "seconds_median": float(np.median([s["seconds"] for s in stats])),
+            "cpu_seconds": float(sum(s["seconds"] for s in stats)),
+            "moved_from_dynamic_mean_m": float(np.mean(moved)),
+            "inside_true_mean": float(np.mean([s["inside_true_count"] for s in stats])),
+            "inside_overlap_mean": float(np.mean([s["inside_overlap_count"] for s in stats])),
+            "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean())}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="agentdress settle", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--database", default="data/tshirt_default.h5")
+    parser.add_argument("--pack", default="data/tshirt_sequences.npz", help="sequence pack of the training clips")
+    parser.add_argument("--frames", type=int, default=500, help="frames spread over the pack to settle")
+    parser.add_argument("--out", required=True, help="the settled drapes' pack (.npz)")
+    parser.add_argument("--workers", type=int, default=2, help="local worker processes (0: in this process)")
+    parser.add_argument("--components", type=int, default=64, help="PCA components of the pack")
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    report = settle_pack(args.database, args.pack, args.out, args.frames, args.workers, not args.quiet,
+                         args.components)
+    json.dump(report, sys.stdout, indent=1)
+    print()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
