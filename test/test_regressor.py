@@ -209,6 +209,10 @@ def test_settled_drapes_come_from_the_training_frames_and_join_the_regressor_dat
     mtime = out.stat().st_mtime_ns
     again = settle_pack(DATABASE, PACK, out, 2, workers=0, progress=False, drape={"max_frames": 12, "min_frames": 4})
     assert again["cpu_seconds"] == report["cpu_seconds"] and out.stat().st_mtime_ns >= mtime
+    # --partial packs what another run's folder holds so far, draping nothing: here all of it
+    partial = settle_pack(DATABASE, PACK, tmp_path / "so_far.npz", 3, workers=0, progress=False, partial=True,
+                          work=tmp_path / "settled.npz.work")
+    assert partial["drapes"] == 2 and partial["cpu_seconds"] == report["cpu_seconds"]
     settings = replace(TINY, settled_copies=3)
     frames, _ = training_frames(PACK, database, settings, out)
     plain, _ = training_frames(PACK, database, TINY, out)  # no copies asked: the settled pack is not read

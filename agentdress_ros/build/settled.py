@@ -52,8 +52,10 @@ def settle_jobs(pack: dict, db, frames, drape: dict | None = None) -> tuple:
 
 
 def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress: bool = True,
-                components: int = 64, drape: dict | None = None) -> dict:
-    """Settle `count` frames of the pack (see the module docstring), resumably; write the pack `out`; a report."""
+                components: int = 64, drape: dict | None = None, partial: bool = False, work=None) -> dict:
+    """Settle `count` frames of the pack (see the module docstring), resumably; write the pack `out`; a report.
+    work: the folder of finished drapes (default `<out>.work`); partial: drape nothing, pack the drapes finished so
+    far (while another run of the same command goes on)."""
     from ..body import AnnyBody
     from ..engine.database import read_database
     from ..engine.kernels import unpose
@@ -67,11 +69,14 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
     check_training_clips([str(c) for c in pack["clips"]])
     frames = spread_frames(pack, count)
     jobs, starts = settle_jobs(pack, db, frames, drape)
-    store = DrapeStore(Path(str(out) + ".work") / "drapes")
+    store = DrapeStore(Path(work if work is not None else str(out) + ".work") / "drapes")
     for key, start in starts.items():
         if not store.has(key):
             store.save({"key": key, "vertices": start, "stats": {}})
-    run_jobs(jobs, store, workers=workers, progress=progress)
+    if partial:
+        jobs = [job for job in jobs if store.has(job.key)]
+    else:
+        run_jobs(jobs, store, workers=workers, progress=progress)
     body = AnnyBody()
     shape = body.shape(db.beta0)
     rest = np.asarray(pack["rest"], dtype=np.float64)
@@ -112,10 +117,13 @@ def main(argv=None) -> int:
     parser.add_argument("--out", required=True, help="the settled drapes' pack (.npz)")
     parser.add_argument("--workers", type=int, default=2, help="local worker processes (0: in this process)")
     parser.add_argument("--components", type=int, default=64, help="PCA components of the pack")
+    parser.add_argument("--work", default=None, help="folder of the finished drapes (default: <out>.work)")
+    parser.add_argument("--partial", action="store_true", help="drape nothing: pack the drapes finished so far "
+                        "(with --work naming a running command's folder and another --out)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     report = settle_pack(args.database, args.pack, args.out, args.frames, args.workers, not args.quiet,
-                         args.components)
+                         args.components, partial=args.partial, work=args.work)
     json.dump(report, sys.stdout, indent=1)
     print()
     return 0
