@@ -213,6 +213,9 @@ def test_settled_drapes_come_from_the_training_frames_and_join_the_regressor_dat
     partial = settle_pack(DATABASE, PACK, tmp_path / "so_far.npz", 3, workers=0, progress=False, partial=True,
                           work=tmp_path / "settled.npz.work")
     assert partial["drapes"] == 2 and partial["cpu_seconds"] == report["cpu_seconds"]
+    so_far = load_sequence_pack(tmp_path / "so_far.npz")  # each drape beside its own pose, not the frames asked for
+    np.testing.assert_array_equal(so_far["rotvecs"], settled["rotvecs"])
+    np.testing.assert_array_equal(so_far["frame"], settled["frame"])
     settings = replace(TINY, settled_copies=3)
     frames, _ = training_frames(PACK, database, settings, out)
     plain, _ = training_frames(PACK, database, TINY, out)  # no copies asked: the settled pack is not read

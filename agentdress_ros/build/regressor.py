@@ -374,7 +374,9 @@ def main(argv=None) -> int:
         frames, _ = training_frames(args.pack, db, settings, args.settled)
         rows = validate_example_copies(frames, example_data(db), pose_dofs(db, settings.features), settings,
                                        args.validate_examples)
-        json.dump({"database": args.database, "pack": args.pack, "copies": rows}, sys.stdout, indent=1)
+        json.dump({"database": args.database, "pack": args.pack, "copies": rows,
+                   **({"settled": args.settled, "settled_copies": settings.settled_copies} if args.settled else {})},
+                  sys.stdout, indent=1)
         print()
         return 0
     report = train_database_regressor(args.database, args.pack, settings, folds=args.folds, force=args.force,

@@ -106,7 +106,6 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     garment vertices inside the body on every `inside_every`-th frame (mean per frame: all, in the body's
     self-overlap, truly inside; garment.inside)."""
     from ..body.model import REFERENCE_SHAPE
-    from ..engine.kernels import unpose
     from ..garment.inside import inside_report
     from ..sim.posing import posed_surfaces, visible_body
     from ..sim.sequence import load_sequence
@@ -115,7 +114,6 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     body, garment = _body_and_garment(garment_name, garment_vertices)
     shape = body.shape(REFERENCE_SHAPE if beta is None else beta)
     rest = garment.rest_vertices(body, shape)
-    skin_w = garment.skin_weights.astype(np.float64)
     garment_root = Path(root) / garment_name
     folders = sorted(p for p in garment_root.iterdir() if any(p.glob("chunk_*.npz"))) if garment_root.is_dir() else []
     offsets, poses, roots, velocities, clip_ids, frame_ids, names, complete = [], [], [], [], [], [], [], []
@@ -134,7 +132,6 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
                                   (cloth_speed, "cloth_speed"), (body_speed, "body_speed"), (frame_ids, "frame")):
                 target.append(previous[field][rows])
             clip_ids.append(np.full(int(rows.sum()), len(names) - 1, dtype=np.int16))
-    unposed = np.empty_like(rest)
     inside = []
     for folder in folders:
         data = load_sequence(folder)
@@ -147,10 +144,8 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
                                        data["root_translation"][f:f + 1].astype(np.float64))
             counts = inside_report(data["positions"][f], bodies[0], visible_body(body)[1])
             inside.append([counts["inside_count"], counts["overlap_count"], counts["truly_inside_count"]])
-        for positions, rotvecs, root in zip(data["positions"], data["rotvecs"], data["root_translation"]):
-            transforms, _ = body.pose(shape, rotvecs.astype(np.float64), root.astype(np.float64))
-            unpose(positions.astype(np.float64), garment.skin_indices, skin_w, transforms, unposed)
-            offsets.append((unposed - rest).ravel())
+        offsets.extend(rest_frame_offsets(body, shape, garment.skin_indices, garment.skin_weights, rest,
+                                          data["positions"], data["rotvecs"], data["root_translation"]))
         poses.append(data["rotvecs"])
         roots.append(data["root_translation"])
         velocities.append(data["root_velocity"])
@@ -162,11 +157,10 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
               "root_velocity": np.concatenate(velocities), "cloth_speed": np.concatenate(cloth_speed),
               "body_speed": np.concatenate(body_speed), "clip": np.concatenate(clip_ids),
               "frame": np.concatenate(frame_ids)}
-    matrix = np.asarray(offsets, dtype=np.float64)
-    error, explained, k = write_pack(out, garment_name, garment_vertices, shape.beta, rest, garment.faces, matrix,
+    error, explained, k = write_pack(out, garment_name, garment_vertices, shape.beta, rest, garment.faces, offsets,
                                      fields, names, complete, components)
     return {"pack": str(out), "bytes": out.stat().st_size, "clips": len(names),
-            "clips_part_way": [n for n, done in zip(names, complete) if not done], "frames": len(matrix),
+            "clips_part_way": [n for n, done in zip(names, complete) if not done], "frames": len(offsets),
             "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean()),
             "rest_frame_error_max_m": float(error.max()),
             "inside_per_frame": dict(zip(("all", "in_self_overlap", "truly_inside"),
@@ -174,6 +168,21 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
             "inside_frames_tested": len(inside),
             "max_cloth_speed": float(np.concatenate(cloth_speed).max()),
             "max_body_speed": float(np.concatenate(body_speed).max())}
+
+
+def rest_frame_offsets(body, shape, skin_indices, skin_weights, rest, positions, rotvecs, roots) -> list:
+    """F rows (3V,): each posed garment positions (F, V, 3) unposed with the bones of `shape` in pose rotvecs
+    (F, B, 3) and root translation roots (F, 3), minus the rest garment (V, 3): what a pack stores (Eq. 5)."""
+    from ..engine.kernels import unpose
+
+    skin_weights = np.asarray(skin_weights, dtype=np.float64)
+    unposed = np.empty_like(np.asarray(rest, dtype=np.float64))
+    rows = []
+    for garment, pose, root in zip(positions, rotvecs, roots):
+        transforms, _ = body.pose(shape, np.asarray(pose, dtype=np.float64), np.asarray(root, dtype=np.float64))
+        unpose(np.asarray(garment, dtype=np.float64), skin_indices, skin_weights, transforms, unposed)
+        rows.append((unposed - rest).ravel())
+    return rows
 
 
 def write_pack(out, garment_name: str, garment_vertices: int, beta, rest, faces, offsets, fields: dict, names,
@@ -185,6 +194,9 @@ def write_pack(out, garment_name: str, garment_vertices: int, beta, rest, faces,
     stored offsets (F, V) metres, explained variance, components kept)."""
     out = Path(out)
     matrix = np.asarray(offsets, dtype=np.float64)
+    if any(len(fields[name]) != len(matrix) for name in fields):
+        raise ValueError(f"{out}: {len(matrix)} frames of offsets but per-frame fields of "
+                         f"{ {name: len(value) for name, value in fields.items()} } rows")
     mean = matrix.mean(axis=0)
     k = min(components, len(matrix) - 1, matrix.shape[1])
     _, singular, basis = np.linalg.svd(matrix - mean, full_matrices=False)

@@ -28,15 +28,13 @@ import numpy as np
 SETTLE_DRAPE = {"velocity_retention": 0.75, "warm_ramp_frames": 1}
 
 
-def settle_jobs(pack: dict, db, frames, drape: dict | None = None) -> tuple:
+def settle_jobs(pack: dict, db, body, frames, drape: dict | None = None) -> tuple:
     """(jobs, starts): one DrapeJob per pack frame index in `frames`, warm-started from the frame's own garment
     (starts: {"dynamic_<frame>_00": posed garment (V, 3)}, the pack's rest-frame offsets skinned at beta0).
     drape: DrapeSettings overrides on top of SETTLE_DRAPE."""
-    from ..body import AnnyBody
     from ..kdsm.training import pack_frames
     from .jobs import DrapeJob
 
-    body = AnnyBody()
     shape = body.shape(db.beta0)
     beta0 = np.asarray(db.beta0, dtype=np.float64)
     garments = pack_frames(pack, db, body, shape, frames)
@@ -58,17 +56,17 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
     far (while another run of the same command goes on)."""
     from ..body import AnnyBody
     from ..engine.database import read_database
-    from ..engine.kernels import unpose
     from ..kdsm.training import spread_frames
     from .builder import run_jobs
     from .jobs import DrapeStore
-    from .sequences import check_training_clips, load_sequence_pack, write_pack
+    from .sequences import check_training_clips, load_sequence_pack, rest_frame_offsets, write_pack
 
     db = read_database(db_path)
+    body = AnnyBody()
     pack = load_sequence_pack(pack_path)
     check_training_clips([str(c) for c in pack["clips"]])
     frames = spread_frames(pack, count)
-    jobs, starts = settle_jobs(pack, db, frames, drape)
+    jobs, starts = settle_jobs(pack, db, body, frames, drape)
     store = DrapeStore(Path(work if work is not None else str(out) + ".work") / "drapes")
     for key, start in starts.items():
         if not store.has(key):
@@ -77,24 +75,19 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
         jobs = [job for job in jobs if store.has(job.key)]
     else:
         run_jobs(jobs, store, workers=workers, progress=progress)
-    body = AnnyBody()
-    shape = body.shape(db.beta0)
     rest = np.asarray(pack["rest"], dtype=np.float64)
-    skin_i = np.ascontiguousarray(db.skin_indices, dtype=np.int32)
-    skin_w = np.ascontiguousarray(db.skin_weights, dtype=np.float64)
-    offsets, unposed, stats = [], np.empty_like(rest), []
-    for job in jobs:
-        transforms, _ = body.pose(shape, job.pose, np.zeros(3))
-        unpose(store.load(job.key), skin_i, skin_w, transforms, unposed)
-        offsets.append((unposed - rest).ravel())
-        stats.append(store.stats(job.key))
+    offsets = rest_frame_offsets(body, body.shape(db.beta0), db.skin_indices, db.skin_weights, rest,
+                                 [store.load(job.key) for job in jobs], [job.pose for job in jobs],
+                                 np.zeros((len(jobs), 3)))
+    stats = [store.stats(job.key) for job in jobs]
     n = len(jobs)
-    fields = {"rotvecs": pack["rotvecs"][frames], "root_translation": np.zeros((n, 3)),
+    done = np.array([job.index for job in jobs], dtype=np.int64)  # the pack frames settled (all but with partial)
+    fields = {"rotvecs": pack["rotvecs"][done], "root_translation": np.zeros((n, 3)),
               "root_velocity": np.zeros((n, 3)), "cloth_speed": np.zeros(n), "body_speed": np.zeros(n),
-              "clip": pack["clip"][frames], "frame": pack["frame"][frames]}
+              "clip": pack["clip"][done], "frame": pack["frame"][done]}
     names = [str(c) for c in pack["clips"]]
     error, explained, k = write_pack(out, str(pack["garment"]), int(pack["garment_vertices"]), pack["beta"], rest,
-                                     pack["faces"], np.asarray(offsets), fields, names, [True] * len(names),
+                                     pack["faces"], offsets, fields, names, [True] * len(names),
                                      components)
     moved = [s["displacement_mean"] for s in stats]
     return {"pack": str(out), "bytes": Path(out).stat().st_size, "drapes": n, "source": str(pack_path),

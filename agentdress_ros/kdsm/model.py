@@ -409,7 +409,8 @@ def beta0_comparison(kdsm, db, body, shape, targets, dofs, settings, pack, test_
     with tempfile.TemporaryDirectory() as folder:
         copy = Path(folder) / "ground_truth_beta0.npz"
         shutil.copyfile(pack, copy)
-        drapes, poses, labels = held_out_beta0(db, body, garment, config, Path(folder) / "cache", workers=0, progress=False, pack=copy)
+        drapes, poses, labels = held_out_beta0(db, body, garment, config, Path(folder) / "cache", workers=0,
+                                               progress=False, pack=copy)
     out = test_set_errors(kdsm, db, body, shape, targets, dofs, settings, poses, drapes)
     out.pop("models")
     out["labels"] = labels

@@ -39,14 +39,20 @@ def posed_surfaces(body, garment, shape, rotvecs, root_translation=None):
     return bodies, garments
 
 
+def _ramp(start, end, frames: int) -> np.ndarray:
+    """(frames, ...) values from `start` towards `end` at t = 0, 1/frames, ..., excluding `end` itself."""
+    start, end = np.asarray(start, dtype=np.float64), np.asarray(end, dtype=np.float64)
+    t = (np.arange(frames, dtype=np.float64) / max(frames, 1)).reshape((-1,) + (1,) * end.ndim)
+    return start[None] + t * (end - start)[None]
+
+
 def ramp_poses(pose, frames: int) -> np.ndarray:
     """Poses (frames, B, 3) from the rest pose towards `pose` (B, 3), excluding `pose` itself.
 
     Each bone's rotation vector is scaled by t in [0, 1): the slerp from the identity, so limbs swing along arcs
     and keep their length (a linear blend of vertex positions would shrink them).
     """
-    t = np.arange(frames, dtype=np.float64) / max(frames, 1)
-    return t[:, None, None] * np.asarray(pose, dtype=np.float64)[None]
+    return _ramp(np.zeros_like(np.asarray(pose, dtype=np.float64)), pose, frames)
 
 
 def ramp_between(beta_from, pose_from, beta_to, pose_to, frames: int) -> tuple:
@@ -56,9 +62,4 @@ def ramp_between(beta_from, pose_from, beta_to, pose_to, frames: int) -> tuple:
     Shape parameters and rotation vectors are blended linearly; for a pose from a nearby frame (or the same pose on
     another shape) the rotation vectors differ little, where this is close to a slerp per bone.
     """
-    t = (np.arange(frames, dtype=np.float64) / max(frames, 1))[:, None]
-    beta_from, beta_to = np.asarray(beta_from, dtype=np.float64), np.asarray(beta_to, dtype=np.float64)
-    pose_from, pose_to = np.asarray(pose_from, dtype=np.float64), np.asarray(pose_to, dtype=np.float64)
-    betas = beta_from[None] + t * (beta_to - beta_from)[None]
-    poses = pose_from[None] + t[:, :, None] * (pose_to - pose_from)[None]
-    return betas, poses
+    return _ramp(beta_from, beta_to, frames), _ramp(pose_from, pose_to, frames)
