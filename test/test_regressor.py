@@ -225,6 +225,51 @@ def test_settled_drapes_come_from_the_training_frames_and_join_the_regressor_dat
     assert training_key(PACK, database, TINY, out) == training_key(PACK, database, TINY)
 
 
+def test_drapes_from_rest_are_draped_like_the_anchors_in_a_spread_order(tmp_path, database):
+    """`agentdress settle --start rest`: the pack frames' poses draped the way the anchors and the held-out set are
+    (the garment at rest on the body at rest, carried into the pose by the animated collider, the database's drape
+    settings), in an order whose every prefix is spread over the frames."""
+    from agentdress_ros.build.jobs import DrapeStore
+    from agentdress_ros.build.settled import rest_start_jobs, settle_pack, spread_order
+
+    assert spread_order(8).tolist() == [0, 4, 2, 6, 1, 5, 3, 7]
+    assert sorted(spread_order(13).tolist()) == list(range(13)) and spread_order(1).tolist() == [0]
+    source = load_sequence_pack(PACK)
+    jobs = rest_start_jobs(source, database, [5])
+    assert jobs[0].settings == database.provenance["config"]["drape"] and not jobs[0].warm_key
+    assert jobs[0].settings["ramp_frames"] == 30
+    out = tmp_path / "rest.npz"
+    tiny = {"ramp_frames": 3, "max_frames": 4, "min_frames": 2}
+    report = settle_pack(DATABASE, PACK, out, 3, workers=0, progress=False, drape=tiny, start="rest")
+    picked = [0, len(source["rotvecs"]) - 1, (len(source["rotvecs"]) - 1) // 2]  # spread frames, in spread order
+    assert report["start"] == "rest" and report["drapes"] == 3 and "moved_from_rest_mean_m" in report
+    rest = load_sequence_pack(out)
+    np.testing.assert_array_equal(rest["rotvecs"], source["rotvecs"][picked])
+    np.testing.assert_array_equal(rest["frame"], source["frame"][picked])
+    stats = [DrapeStore(tmp_path / "rest.npz.work" / "drapes").stats(f"rest_{f:04d}_00") for f in picked]
+    assert all(s["ramp_frames"] == 3 and s["pushed_out"] == 0 for s in stats)
+    with pytest.raises(ValueError, match="start must be"):
+        settle_pack(DATABASE, PACK, out, 3, workers=0, progress=False, start="moving")
+
+
+def test_validation_on_held_out_clips_static_drapes_weighs_their_copies(database, frames):
+    """--validate-settled: each fold trains on the other clips' frames and static drapes (count copies) and scores
+    the held-out clips' static drapes; 0 copies is the model without them."""
+    from agentdress_ros.build.regressor import validate_settled_copies
+
+    dofs = pose_dofs(database, "sensitive")
+    clips = np.unique(frames.groups)
+    settled = frames.rows(np.arange(0, len(frames.poses), 5))  # stand-ins: a few frames per clip, shifted by 2 cm
+    settled = TrainingData(settled.poses, settled.positions + np.array([0.0, 0.0, 0.02]), settled.groups)
+    rows = validate_settled_copies(frames, settled, None, dofs, TINY, [0, 4], folds=3)
+    assert [r["copies"] for r in rows] == [0, 4] and all(len(r["fold_errors_m"]) == len(clips) for r in rows)
+    held = settled.groups == sorted(clips)[0]
+    alone, _ = fit(frames.rows(frames.groups != sorted(clips)[0]), dofs, TINY)
+    assert rows[0]["fold_errors_m"][0] == pytest.approx(
+        vertex_error(predict(alone, settled.poses[held]), settled.positions[held]))
+    assert rows[1]["validation_error_m"] < rows[0]["validation_error_m"]  # the copies carry the shift
+
+
 def test_command_writes_the_group_once_and_no_learning_library_at_run_time(tmp_path, database):
     """Training into a database is idempotent; a frame with the stored regressor imports no sklearn/torch/jax."""
     path = write_database(tmp_path / "db.h5", database)

@@ -252,6 +252,26 @@ def validate_example_copies(frames: TrainingData, examples: TrainingData, dofs, 
     return rows
 
 
+def validate_settled_copies(frames: TrainingData, settled: TrainingData, extra: TrainingData | None, dofs,
+                            settings: RegressorSettings, copies, folds: int = 3) -> list[dict]:
+    """How many copies of a settled pack's static drapes (build.settled) to train on: for each count, the mean
+    rest-frame vertex error (m) on the static drapes of held-out clips. Each fold holds out whole clips of the
+    settled pack and trains on the other clips' pack frames and static drapes (`count` copies) plus `extra` (the
+    database's beta0 drapes): the held-out set's kind of cloth, in poses of clips no fold trained on."""
+    rows = []
+    for count in copies:
+        errors, weights = [], []
+        for held in clip_folds(np.unique(settled.groups), folds):
+            test = np.isin(settled.groups, held)
+            parts = [frames.rows(~np.isin(frames.groups, held))] + [settled.rows(~test)] * count
+            regressor, _ = fit(join(*parts, *([extra] if extra is not None else [])), dofs, settings)
+            errors.append(vertex_error(predict(regressor, settled.poses[test]), settled.positions[test]))
+            weights.append(int(test.sum()))
+        rows.append({"copies": int(count), "validation_error_m": float(np.average(errors, weights=weights)),
+                     "fold_errors_m": [float(e) for e in errors]})
+    return rows
+
+
 def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) -> str:
     """What the trained weights depend on: the packs' arrays, the database's drapes used, settings, sklearn."""
     import sklearn
@@ -364,6 +384,9 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true")
     parser.add_argument("--validate-examples", type=int, nargs="+", metavar="COPIES", help="only validate these "
                         "counts of copies of the beta0 drapes on held-out halves of them (JSON), train nothing")
+    parser.add_argument("--validate-settled", type=int, nargs="+", metavar="COPIES", help="only validate these "
+                        "counts of copies of the --settled drapes on the drapes of held-out clips (JSON), train "
+                        "nothing")
     args = parser.parse_args(argv)
     settings = RegressorSettings(components=args.components, hidden=tuple(args.hidden), activation=args.activation,
                                  alpha=args.alpha, features=args.features, examples=args.examples,
@@ -377,6 +400,19 @@ def main(argv=None) -> int:
         json.dump({"database": args.database, "pack": args.pack, "copies": rows,
                    **({"settled": args.settled, "settled_copies": settings.settled_copies} if args.settled else {})},
                   sys.stdout, indent=1)
+        print()
+        return 0
+    if args.validate_settled:
+        if not args.settled:
+            parser.error("--validate-settled needs --settled")
+        db = read_database(args.database)
+        frames, _ = training_frames(args.pack, db, replace(settings, settled_copies=0))
+        settled = pack_data(load_sequence_pack(args.settled), db, settings.max_offset)
+        extra = join(*[example_data(db)] * settings.examples) if settings.examples else None
+        rows = validate_settled_copies(frames, settled, extra, pose_dofs(db, settings.features), settings,
+                                       args.validate_settled, args.folds)
+        json.dump({"database": args.database, "pack": args.pack, "settled": args.settled,
+                   "settled_drapes": int(len(settled.poses)), "copies": rows}, sys.stdout, indent=1)
         print()
         return 0
     report = train_database_regressor(args.database, args.pack, settings, folds=args.folds, force=args.force,
