@@ -223,6 +223,13 @@ def test_settled_drapes_come_from_the_training_frames_and_join_the_regressor_dat
     np.testing.assert_array_equal(frames.groups[-2:], data.groups)
     assert training_key(PACK, database, settings, out) != training_key(PACK, database, TINY, out)
     assert training_key(PACK, database, TINY, out) == training_key(PACK, database, TINY)
+    static = replace(settings, dynamic=False)  # the static drapes only: no dynamic frame, the pack not read
+    only, dropped = training_frames(tmp_path / "absent.npz", database, static, out)
+    assert len(only.poses) == 3 * 2 and dropped == 0
+    assert training_key(tmp_path / "absent.npz", database, static, out) not in (
+        training_key(PACK, database, settings, out), training_key(PACK, database, TINY))
+    with pytest.raises(ValueError, match="static drapes only"):
+        training_frames(PACK, database, replace(TINY, dynamic=False))
 
 
 def test_drapes_from_rest_are_draped_like_the_anchors_in_a_spread_order(tmp_path, database):
@@ -268,6 +275,8 @@ def test_validation_on_held_out_clips_static_drapes_weighs_their_copies(database
     assert rows[0]["fold_errors_m"][0] == pytest.approx(
         vertex_error(predict(alone, settled.poses[held]), settled.positions[held]))
     assert rows[1]["validation_error_m"] < rows[0]["validation_error_m"]  # the copies carry the shift
+    only = validate_settled_copies(None, settled, None, dofs, TINY, [4], folds=3)  # static drapes only
+    assert not only[0]["dynamic"] and rows[0]["dynamic"] and len(only[0]["fold_errors_m"]) == len(clips)
 
 
 def test_command_writes_the_group_once_and_no_learning_library_at_run_time(tmp_path, database):

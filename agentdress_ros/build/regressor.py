@@ -51,6 +51,8 @@ class RegressorSettings:
     # not a drape to learn
     settled_copies: int = 0  # copies of the settled static drapes (build.settled) among the frames, when a settled
     # pack is given (0: none given)
+    dynamic: bool = True  # train on the sequence pack's dynamic frames; False: on the static drapes only (the settled
+    # pack's copies and the database's beta0 drapes), the held-out set's kind of cloth
 
 
 @dataclass
@@ -252,22 +254,25 @@ def validate_example_copies(frames: TrainingData, examples: TrainingData, dofs, 
     return rows
 
 
-def validate_settled_copies(frames: TrainingData, settled: TrainingData, extra: TrainingData | None, dofs,
+def validate_settled_copies(frames: TrainingData | None, settled: TrainingData, extra: TrainingData | None, dofs,
                             settings: RegressorSettings, copies, folds: int = 3) -> list[dict]:
     """How many copies of a settled pack's static drapes (build.settled) to train on: for each count, the mean
     rest-frame vertex error (m) on the static drapes of held-out clips. Each fold holds out whole clips of the
-    settled pack and trains on the other clips' pack frames and static drapes (`count` copies) plus `extra` (the
-    database's beta0 drapes): the held-out set's kind of cloth, in poses of clips no fold trained on."""
+    settled pack and trains on the other clips' pack frames (none when `frames` is None: static drapes only) and
+    static drapes (`count` copies) plus `extra` (the database's beta0 drapes): the held-out set's kind of cloth, in
+    poses of clips no fold trained on."""
     rows = []
     for count in copies:
         errors, weights = [], []
         for held in clip_folds(np.unique(settled.groups), folds):
             test = np.isin(settled.groups, held)
-            parts = [frames.rows(~np.isin(frames.groups, held))] + [settled.rows(~test)] * count
+            parts = [] if frames is None else [frames.rows(~np.isin(frames.groups, held))]
+            parts += [settled.rows(~test)] * count
             regressor, _ = fit(join(*parts, *([extra] if extra is not None else [])), dofs, settings)
             errors.append(vertex_error(predict(regressor, settled.poses[test]), settled.positions[test]))
             weights.append(int(test.sum()))
-        rows.append({"copies": int(count), "validation_error_m": float(np.average(errors, weights=weights)),
+        rows.append({"copies": int(count), "dynamic": frames is not None,
+                     "validation_error_m": float(np.average(errors, weights=weights)),
                      "fold_errors_m": [float(e) for e in errors]})
     return rows
 
@@ -277,7 +282,9 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
     import sklearn
 
     digest = hashlib.sha256()
-    for path in [pack_path] + ([settled_path] if settled_path and settings.settled_copies else []):
+    packs = ([pack_path] if settings.dynamic else []) + ([settled_path] if settled_path and settings.settled_copies
+                                                         else [])
+    for path in packs:
         with np.load(path) as data:
             for name in ("coefficients", "basis", "mean", "scale", "rotvecs", "clip", "clips", "rest"):
                 digest.update(np.ascontiguousarray(data[name]).tobytes())
@@ -288,6 +295,8 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
     fields = asdict(settings)
     if not settings.settled_copies:  # regressors trained before settled drapes existed keep their key
         fields.pop("settled_copies")
+    if settings.dynamic:  # nor do those trained on the dynamic frames
+        fields.pop("dynamic")
     digest.update(json.dumps({**fields, "sklearn": sklearn.__version__, "inputs": inputs}, sort_keys=True).encode())
     return digest.hexdigest()[:16]
 
@@ -295,13 +304,19 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
 def training_frames(pack_path, db, settings: RegressorSettings, settled_path=None) -> tuple:
     """(frames, frames left out): the pack's frames and, with a settled pack (build.settled) and
     settings.settled_copies, that many copies of its static drapes, each under its source clip's name (so a clip
-    held out in validation takes its settled drapes with it)."""
+    held out in validation takes its settled drapes with it). Without settings.dynamic, the static drapes only."""
+    static = None
+    if settled_path and settings.settled_copies:
+        static = pack_data(load_sequence_pack(settled_path), db, settings.max_offset)
+    if not settings.dynamic:
+        if static is None:
+            raise ValueError("training on the static drapes only needs a settled pack and settled_copies > 0")
+        return join(*[static] * settings.settled_copies), 0
     pack = load_sequence_pack(pack_path)
     frames = pack_data(pack, db, settings.max_offset)
     dropped = len(pack["offsets"]) - len(frames.poses)
-    if settled_path and settings.settled_copies:
-        frames = join(frames, *[pack_data(load_sequence_pack(settled_path), db, settings.max_offset)]
-                      * settings.settled_copies)
+    if static is not None:
+        frames = join(frames, *[static] * settings.settled_copies)
     return frames, dropped
 
 
@@ -367,6 +382,8 @@ def main(argv=None) -> int:
     parser.add_argument("--settled", default=None, help="pack of static drapes settled from the training frames "
                         "(agentdress settle), trained on beside the pack's frames")
     parser.add_argument("--settled-copies", type=int, default=1, help="copies of the settled drapes (with --settled)")
+    parser.add_argument("--static-only", action="store_true", help="train on the static drapes only (the --settled "
+                        "copies and the database's beta0 drapes), not on the pack's dynamic frames")
     defaults = RegressorSettings()
     parser.add_argument("--components", type=int, default=defaults.components)
     parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden))
@@ -391,7 +408,8 @@ def main(argv=None) -> int:
     settings = RegressorSettings(components=args.components, hidden=tuple(args.hidden), activation=args.activation,
                                  alpha=args.alpha, features=args.features, examples=args.examples,
                                  max_iter=args.max_iter, seed=args.seed, max_offset=args.max_offset,
-                                 settled_copies=args.settled_copies if args.settled else 0)
+                                 settled_copies=args.settled_copies if args.settled else 0,
+                                 dynamic=not args.static_only)
     if args.validate_examples:
         db = read_database(args.database)
         frames, _ = training_frames(args.pack, db, settings, args.settled)
@@ -406,7 +424,7 @@ def main(argv=None) -> int:
         if not args.settled:
             parser.error("--validate-settled needs --settled")
         db = read_database(args.database)
-        frames, _ = training_frames(args.pack, db, replace(settings, settled_copies=0))
+        frames = training_frames(args.pack, db, replace(settings, settled_copies=0))[0] if settings.dynamic else None
         settled = pack_data(load_sequence_pack(args.settled), db, settings.max_offset)
         extra = join(*[example_data(db)] * settings.examples) if settings.examples else None
         rows = validate_settled_copies(frames, settled, extra, pose_dofs(db, settings.features), settings,
