@@ -225,7 +225,7 @@ def test_settled_drapes_come_from_the_training_frames_and_join_the_regressor_dat
     assert training_key(PACK, database, TINY, out) == training_key(PACK, database, TINY)
     static = replace(settings, dynamic=False)  # the static drapes only: no dynamic frame, the pack not read
     only, dropped = training_frames(tmp_path / "absent.npz", database, static, out)
-    assert len(only.poses) == 3 * 2 and dropped == 0
+    assert len(only.poses) == 3 * 2 and dropped == 0  # neither tiny drape strays
     assert training_key(tmp_path / "absent.npz", database, static, out) not in (
         training_key(PACK, database, settings, out), training_key(PACK, database, TINY))
     with pytest.raises(ValueError, match="static drapes only"):

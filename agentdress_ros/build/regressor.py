@@ -305,13 +305,15 @@ def training_frames(pack_path, db, settings: RegressorSettings, settled_path=Non
     """(frames, frames left out): the pack's frames and, with a settled pack (build.settled) and
     settings.settled_copies, that many copies of its static drapes, each under its source clip's name (so a clip
     held out in validation takes its settled drapes with it). Without settings.dynamic, the static drapes only."""
-    static = None
+    static, static_dropped = None, 0
     if settled_path and settings.settled_copies:
-        static = pack_data(load_sequence_pack(settled_path), db, settings.max_offset)
+        settled = load_sequence_pack(settled_path)
+        static = pack_data(settled, db, settings.max_offset)
+        static_dropped = len(settled["offsets"]) - len(static.poses)
     if not settings.dynamic:
         if static is None:
             raise ValueError("training on the static drapes only needs a settled pack and settled_copies > 0")
-        return join(*[static] * settings.settled_copies), 0
+        return join(*[static] * settings.settled_copies), static_dropped
     pack = load_sequence_pack(pack_path)
     frames = pack_data(pack, db, settings.max_offset)
     dropped = len(pack["offsets"]) - len(frames.poses)
