@@ -153,10 +153,13 @@ def main(argv=None) -> int:
     parser.add_argument("--start", choices=["dynamic", "rest"], default="dynamic",
                         help="dynamic: settle from the frame's own cloth; rest: carry the garment from the rest pose "
                         "into the frame's pose, as the anchors and the held-out set are draped")
+    parser.add_argument("--drape", type=json.loads, default=None, help="JSON DrapeSettings overrides, e.g. "
+                        "'{\"ramp_frames\": 30}' to drape from rest with a database built with the static collider")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     report = settle_pack(args.database, args.pack, args.out, args.frames, args.workers, not args.quiet,
-                         args.components, partial=args.partial, work=args.work, start=args.start)
+                         args.components, drape=args.drape, partial=args.partial, work=args.work,
+                         start=args.start)
     json.dump(report, sys.stdout, indent=1)
     print()
     return 0
