@@ -99,6 +99,11 @@ def example_data(db) -> TrainingData:
     return TrainingData(poses, positions, np.array(["examples"] * len(poses)))
 
 
+def example_copies(db, settings: RegressorSettings) -> TrainingData | None:
+    """settings.examples copies of the database's beta0 drapes (example_data), or None for none."""
+    return join(*[example_data(db)] * settings.examples) if settings.examples else None
+
+
 def kept_frames(pack: dict, frames: np.ndarray, max_offset: float | None) -> np.ndarray:
     """The pack frames (indices) the `regressor` trains on: those whose garment strays at most max_offset (m) from
     its skinned place (a sequence that lost the garment is no drape to hold or learn); all with None."""
@@ -121,6 +126,13 @@ def pack_data(pack: dict, db, max_offset: float | None = None) -> TrainingData:
     keep = kept_frames(pack, np.arange(len(offsets)), max_offset)
     positions = offsets[keep].astype(np.float64) + np.asarray(pack["rest"], dtype=np.float64)
     return TrainingData(canonical_poses(pack["rotvecs"][keep]), positions, np.array(names)[pack["clip"][keep]])
+
+
+def settled_data(path, db, max_offset: float | None) -> tuple:
+    """(static drapes of a settled pack (build.settled) as TrainingData, drapes left out by max_offset)."""
+    settled = load_sequence_pack(path)
+    data = pack_data(settled, db, max_offset)
+    return data, len(settled["offsets"]) - len(data.poses)
 
 
 def join(*parts: TrainingData) -> TrainingData:
@@ -282,8 +294,9 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
     import sklearn
 
     digest = hashlib.sha256()
-    packs = ([pack_path] if settings.dynamic else []) + ([settled_path] if settled_path and settings.settled_copies
-                                                         else [])
+    packs = [pack_path] if settings.dynamic else []
+    if settled_path and settings.settled_copies:
+        packs.append(settled_path)
     for path in packs:
         with np.load(path) as data:
             for name in ("coefficients", "basis", "mean", "scale", "rotvecs", "clip", "clips", "rest"):
@@ -307,9 +320,7 @@ def training_frames(pack_path, db, settings: RegressorSettings, settled_path=Non
     held out in validation takes its settled drapes with it). Without settings.dynamic, the static drapes only."""
     static, static_dropped = None, 0
     if settled_path and settings.settled_copies:
-        settled = load_sequence_pack(settled_path)
-        static = pack_data(settled, db, settings.max_offset)
-        static_dropped = len(settled["offsets"]) - len(static.poses)
+        static, static_dropped = settled_data(settled_path, db, settings.max_offset)
     if not settings.dynamic:
         if static is None:
             raise ValueError("training on the static drapes only needs a settled pack and settled_copies > 0")
@@ -354,7 +365,7 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
                 "stored already", **db.regressor.info}
     bar = tqdm(total=folds + 2, desc="regressor", unit="fit", disable=not progress)
     frames, dropped = training_frames(pack_path, db, settings, settled_path)
-    extra = join(*[example_data(db)] * settings.examples) if settings.examples else None
+    extra = example_copies(db, settings)
     bar.update()
     dofs = pose_dofs(db, settings.features)
     report = cross_validate(frames, extra, dofs, settings, folds)
@@ -427,10 +438,9 @@ def main(argv=None) -> int:
             parser.error("--validate-settled needs --settled")
         db = read_database(args.database)
         frames = training_frames(args.pack, db, replace(settings, settled_copies=0))[0] if settings.dynamic else None
-        settled = pack_data(load_sequence_pack(args.settled), db, settings.max_offset)
-        extra = join(*[example_data(db)] * settings.examples) if settings.examples else None
-        rows = validate_settled_copies(frames, settled, extra, pose_dofs(db, settings.features), settings,
-                                       args.validate_settled, args.folds)
+        settled, _ = settled_data(args.settled, db, settings.max_offset)
+        rows = validate_settled_copies(frames, settled, example_copies(db, settings), pose_dofs(db, settings.features),
+                                       settings, args.validate_settled, args.folds)
         json.dump({"database": args.database, "pack": args.pack, "settled": args.settled,
                    "settled_drapes": int(len(settled.poses)), "copies": rows}, sys.stdout, indent=1)
         print()

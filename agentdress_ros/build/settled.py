@@ -132,7 +132,7 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
             "frames_median": float(np.median([s["frames"] for s in stats])),
             "seconds_median": float(np.median([s["seconds"] for s in stats])),
             "cpu_seconds": float(sum(s["seconds"] for s in stats)),
-            f"moved_from_{'rest' if start == 'rest' else 'dynamic'}_mean_m": float(np.mean(moved)),
+            f"moved_from_{start}_mean_m": float(np.mean(moved)),
             "inside_true_mean": float(np.mean([s["inside_true_count"] for s in stats])),
             "inside_overlap_mean": float(np.mean([s["inside_overlap_count"] for s in stats])),
             "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean())}
