@@ -9,9 +9,10 @@ import h5py
 import numpy as np
 import pytest
 
-from agentdress_ros.build.regressor import (RegressorSettings, TrainingData, clip_folds, example_data, fit, pack_data,
-                                            pose_dofs, predict, store_regressor, train_database_regressor,
-                                            validate_example_copies, vertex_error)
+from agentdress_ros.build.regressor import (RegressorSettings, TrainingData, add_network_arguments, clip_folds,
+                                            example_data, fit, network_settings, pack_data, pose_dofs, predict,
+                                            store_regressor, train_database_regressor, validate_example_copies,
+                                            vertex_error)
 from agentdress_ros.build.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
 from agentdress_ros.engine.engine import permute_vertices, select_database
@@ -38,7 +39,7 @@ def frames(database):
 
 @pytest.fixture(scope="module")
 def trained(database, frames):
-    regressor, mlp = fit(frames, pose_dofs(database, "all"), TINY)
+    regressor, (mlp,) = fit(frames, pose_dofs(database, "all"), TINY)
     return regressor, mlp
 
 
@@ -56,6 +57,20 @@ def test_numpy_inference_equals_the_sklearn_model(body, database, frames, traine
         out = np.empty_like(want)
         out[engine.order] = engine.pose_model.evaluate(pose, np.zeros(3), None).T
         np.testing.assert_allclose(out, want, atol=2e-5)
+
+
+@pytest.mark.parametrize("hidden", [(12,), (12, 8)])
+def test_an_ensemble_is_stored_as_one_mlp_whose_output_is_the_members_mean(database, frames, hidden):
+    settings = replace(TINY, hidden=hidden, ensemble=3)
+    regressor, mlps = fit(frames, pose_dofs(database, "all"), settings)
+    assert len(mlps) == 3 and [m.random_state for m in mlps] == [3, 4, 5]
+    assert [w.shape[1] for w in regressor.weights[:-1]] == [3 * h for h in hidden]
+    x = np.clip((frames.poses.reshape(len(frames.poses), -1)[:, regressor.dofs] - regressor.input_mean)
+                / regressor.input_scale, -INPUT_CLIP, INPUT_CLIP)
+    mean_output = np.mean([m.predict(x) for m in mlps], axis=0)
+    expected = (mean_output * regressor.coefficient_scale) @ regressor.basis.reshape(len(regressor.basis), -1)
+    np.testing.assert_allclose(predict(regressor, frames.poses), expected.reshape(frames.positions.shape)
+                               + regressor.mean, atol=2e-5)
 
 
 def test_inputs_that_training_held_still_are_dropped_and_far_inputs_clipped(database, frames, trained):
@@ -155,6 +170,16 @@ def test_training_refuses_test_clips_and_holds_out_whole_clips(database):
         pack_data(pack, database)
     folds = clip_folds(["a", "b", "c", "d", "e"], 3)
     assert sorted(sum(folds, [])) == ["a", "b", "c", "d", "e"] and len(folds) == 3
+
+
+def test_the_network_options_read_back_as_settings():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_network_arguments(parser)
+    assert network_settings(parser.parse_args([])) == RegressorSettings()
+    changed = network_settings(parser.parse_args(["--alpha", "1", "--examples", "2", "--hidden", "64", "32"]))
+    assert changed == replace(RegressorSettings(), alpha=1.0, examples=2, hidden=(64, 32))
 
 
 def test_frames_that_lost_the_garment_are_left_out(database):

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ..body.kinematics import forward_kinematics, linear_blend_skinning
-from ..build.regressor import (RegressorSettings, TrainingData, clip_folds, fit, kept_frames, pack_data, pose_dofs,
-                                predict)
+from ..build.regressor import (RegressorSettings, TrainingData, add_network_arguments, clip_folds, fit, kept_frames,
+                                network_settings, pack_data, pose_dofs, predict)
 from .embedding import KdsmPoser
 from .mesh import KDSM, KDSMSettings, build_kdsm
 from .training import GarmentFrames, drape_clearance, pack_frames, spread_frames, training_targets
@@ -338,9 +338,10 @@ def main(argv=None) -> int:
                         help="the held-out set whose poses --beta0-pack holds (v2: docs/eval/v2/<garment>/"
                         "ground_truth_beta0.npz, 40 poses)")
     parser.add_argument("--report", default=None, help="write the report (JSON) here too")
+    add_network_arguments(parser, defaults.regressor)
     args = parser.parse_args(argv)
     settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin,
-                       smoothing=args.smoothing)
+                       smoothing=args.smoothing, regressor=network_settings(args))
     reg_settings = settings.regressor
 
     started = time.perf_counter()
@@ -348,7 +349,7 @@ def main(argv=None) -> int:
     body = AnnyBody()
     shape = body.shape(db.beta0)
     pack = load_sequence_pack(args.pack)
-    key = targets_key(args.database, args.pack, settings)
+    key = targets_key(args.database, args.pack, settings, max_offset=reg_settings.max_offset)
     mesh_path = None if args.targets is None else Path(args.targets).with_name(Path(args.targets).stem + "_mesh.npz")
     targets = None if args.targets is None else load_targets(args.targets, key)
     if targets is not None and mesh_path.is_file():
