@@ -55,6 +55,7 @@ class RegressorSettings:
     # pack's copies and the database's beta0 drapes), the held-out set's kind of cloth
     ensemble: int = 1  # MLPs trained from seeds seed, seed+1, ... on the same data and stored merged into one wider MLP
     # whose output is their mean (exact; README "Drapes from rest along the training clips": 5 beat 1 by 2-3 %)
+    mirror: bool = False  # train on the frames' left-right mirror images too (build.mirror): twice the poses
 
 
 @dataclass
@@ -99,6 +100,16 @@ def example_data(db) -> TrainingData:
         forward_kinematics(pose, np.zeros(3), heads, parents, transforms)
         unpose(np.asarray(db.example_drapes[m], dtype=np.float64), db.skin_indices, weights, transforms, positions[m])
     return TrainingData(poses, positions, np.array(["examples"] * len(poses)))
+
+
+def data_mirror(db, settings: RegressorSettings):
+    """The build.mirror.Mirror of the database's garment when settings.mirror, else None."""
+    if not settings.mirror:
+        return None
+    from ..body import AnnyBody
+    from .mirror import Mirror
+
+    return Mirror.of(db, AnnyBody())
 
 
 def example_copies(db, settings: RegressorSettings) -> TrainingData | None:
@@ -250,15 +261,21 @@ def clip_folds(clips, folds: int) -> list[list[str]]:
     return [clips[i::folds] for i in range(min(folds, len(clips)))]
 
 
+def with_mirror(data: TrainingData, mirror=None) -> TrainingData:
+    """data and, with a build.mirror.Mirror, its mirror images."""
+    return join(data, mirror(data)) if mirror is not None else data
+
+
 def cross_validate(frames: TrainingData, extra: TrainingData | None, dofs, settings: RegressorSettings,
-                   folds: int = 3) -> dict:
-    """Mean rest-frame vertex error (m) on held-out clips: each fold trains on the other clips (plus `extra`, the
-    database's drapes, when given) and is scored on its own clips' frames; also the PCA's own error on them (what
-    any regressor with G components loses) and the mean garment's (predicting no pose dependence at all)."""
+                   folds: int = 3, mirror=None) -> dict:
+    """Mean rest-frame vertex error (m) on held-out clips: each fold trains on the other clips (and their mirror
+    images, with `mirror`; plus `extra`, the database's drapes, when given) and is scored on its own clips' frames;
+    also the PCA's own error on them (what any regressor with G components loses) and the mean garment's
+    (predicting no pose dependence at all)."""
     errors, pca_errors, mean_errors, weights = [], [], [], []
     for held in clip_folds(np.unique(frames.groups), folds):
         test = np.isin(frames.groups, held)
-        train = frames.rows(~test)
+        train = with_mirror(frames.rows(~test), mirror)
         if extra is not None:
             train = join(train, extra)
         regressor, _ = fit(train, dofs, settings)
@@ -298,7 +315,7 @@ def validate_example_copies(frames: TrainingData, examples: TrainingData, dofs, 
 
 
 def validate_settled_copies(frames: TrainingData | None, settled: TrainingData, extra: TrainingData | None, dofs,
-                            settings: RegressorSettings, copies, folds: int = 3) -> list[dict]:
+                            settings: RegressorSettings, copies, folds: int = 3, mirror=None) -> list[dict]:
     """How many copies of a settled pack's static drapes (build.settled) to train on: for each count, the mean
     rest-frame vertex error (m) on the static drapes of held-out clips. Each fold holds out whole clips of the
     settled pack and trains on the other clips' pack frames (none when `frames` is None: static drapes only) and
@@ -311,7 +328,8 @@ def validate_settled_copies(frames: TrainingData | None, settled: TrainingData, 
             test = np.isin(settled.groups, held)
             parts = [] if frames is None else [frames.rows(~np.isin(frames.groups, held))]
             parts += [settled.rows(~test)] * count
-            regressor, _ = fit(join(*parts, *([extra] if extra is not None else [])), dofs, settings)
+            train = with_mirror(join(*parts), mirror) if parts else None
+            regressor, _ = fit(join(*[p for p in (train, extra) if p is not None]), dofs, settings)
             errors.append(vertex_error(predict(regressor, settled.poses[test]), settled.positions[test]))
             weights.append(int(test.sum()))
         rows.append({"copies": int(count), "dynamic": frames is not None,
@@ -343,6 +361,8 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
         fields.pop("dynamic")
     if settings.ensemble == 1:  # nor single MLPs
         fields.pop("ensemble")
+    if not settings.mirror:  # nor those trained without mirror images
+        fields.pop("mirror")
     digest.update(json.dumps({**fields, "sklearn": sklearn.__version__, "inputs": inputs}, sort_keys=True).encode())
     return digest.hexdigest()[:16]
 
@@ -399,11 +419,13 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
     bar = tqdm(total=folds + 2, desc="regressor", unit="fit", disable=not progress)
     frames, dropped = training_frames(pack_path, db, settings, settled_path)
     extra = example_copies(db, settings)
+    mirror = data_mirror(db, settings)
     bar.update()
     dofs = pose_dofs(db, settings.features)
-    report = cross_validate(frames, extra, dofs, settings, folds)
+    report = cross_validate(frames, extra, dofs, settings, folds, mirror)
     bar.update(folds)
-    regressor, _ = fit(join(frames, extra) if extra is not None else frames, dofs, settings)
+    train = with_mirror(frames, mirror)
+    regressor, _ = fit(join(train, extra) if extra is not None else train, dofs, settings)
     bar.update()
     bar.close()
     train_error = vertex_error(predict(regressor, frames.poses), frames.positions)
@@ -456,6 +478,8 @@ def main(argv=None) -> int:
     parser.add_argument("--settled-copies", type=int, default=1, help="copies of the settled drapes (with --settled)")
     parser.add_argument("--static-only", action="store_true", help="train on the static drapes only (the --settled "
                         "copies and the database's beta0 drapes), not on the pack's dynamic frames")
+    parser.add_argument("--mirror", action="store_true", help="train on the frames' left-right mirror images too "
+                        "(not the database's drapes')")
     add_network_arguments(parser)
     parser.add_argument("--folds", type=int, default=3, help="validation folds of whole clips")
     parser.add_argument("--force", action="store_true", help="retrain even if the stored regressor is up to date")
@@ -467,7 +491,7 @@ def main(argv=None) -> int:
                         "nothing")
     args = parser.parse_args(argv)
     settings = replace(network_settings(args), settled_copies=args.settled_copies if args.settled else 0,
-                       dynamic=not args.static_only)
+                       dynamic=not args.static_only, mirror=args.mirror)
     if args.validate_examples:
         db = read_database(args.database)
         frames, _ = training_frames(args.pack, db, settings, args.settled)
@@ -485,7 +509,7 @@ def main(argv=None) -> int:
         frames = training_frames(args.pack, db, replace(settings, settled_copies=0))[0] if settings.dynamic else None
         settled, _ = settled_data(args.settled, db, settings.max_offset)
         rows = validate_settled_copies(frames, settled, example_copies(db, settings), pose_dofs(db, settings.features),
-                                       settings, args.validate_settled, args.folds)
+                                       settings, args.validate_settled, args.folds, data_mirror(db, settings))
         json.dump({"database": args.database, "pack": args.pack, "settled": args.settled,
                    "settled_drapes": int(len(settled.poses)), "copies": rows}, sys.stdout, indent=1)
         print()
