@@ -13,7 +13,8 @@ Each clip runs as one job (`sim.sequence.simulate_sequence`, checkpointed every 
 
 The pack stores what a learned pose model trains on, compactly: every frame's garment unposed to the rest frame
 with beta0's bones (Santesteban et al. 2019, Eq. 5: delta = W^-1(S) - T) as PCA coefficients (float16) plus the
-basis (float32) and the rest garment, beside the frame's pose, root translation and root velocity.
+basis (float16; packs made before it: float32) and the rest garment, beside the frame's pose, root translation and
+root velocity.
 """
 from __future__ import annotations
 
@@ -188,7 +189,7 @@ def rest_frame_offsets(body, shape, skin_indices, skin_weights, rest, positions,
 def write_pack(out, garment_name: str, garment_vertices: int, beta, rest, faces, offsets, fields: dict, names,
                complete, components: int) -> tuple:
     """Write a pack (the module docstring's format) atomically: offsets (F, 3V) rest-frame offsets as float16 PCA
-    coefficients of `components` components (each scaled to its range) plus the float32 basis; `fields` the per-frame
+    coefficients of `components` components (each scaled to its range) plus the float16 basis; `fields` the per-frame
     arrays (rotvecs (F, B, 3), root_translation, root_velocity (F, 3), cloth_speed, body_speed (F,), clip (F,)
     indices into `names`, frame (F,)); complete (C,) whether each clip is whole. Returns (rest-frame error of the
     stored offsets (F, V) metres, explained variance, components kept)."""
@@ -204,7 +205,9 @@ def write_pack(out, garment_name: str, garment_vertices: int, beta, rest, faces,
     coefficients = (matrix - mean) @ basis.T
     scale = np.abs(coefficients).max(axis=0) + 1e-12  # float16 keeps ~3 digits of each coefficient's range
     coefficients16 = (coefficients / scale).astype(np.float16)
-    restored = (coefficients16.astype(np.float64) * scale) @ basis + mean
+    # the basis in float16 too: its unit rows lose ~1e-5 m of a restored offset, and it is half the pack
+    basis16 = basis.astype(np.float16)
+    restored = (coefficients16.astype(np.float64) * scale) @ basis16.astype(np.float64) + mean
     error = np.linalg.norm((restored - matrix).reshape(len(matrix), -1, 3), axis=2)
     per_frame = {name: np.asarray(fields[name], dtype=np.float32) for name in
                  ("rotvecs", "root_translation", "root_velocity", "cloth_speed", "body_speed")}
@@ -213,7 +216,7 @@ def write_pack(out, garment_name: str, garment_vertices: int, beta, rest, faces,
         np.savez_compressed(
             handle, garment=np.array(garment_name), garment_vertices=np.array(garment_vertices),
             beta=np.asarray(beta), rest=np.asarray(rest, dtype=np.float32), faces=np.asarray(faces, dtype=np.int32),
-            mean=mean.astype(np.float32), basis=basis.astype(np.float32), scale=scale.astype(np.float32),
+            mean=mean.astype(np.float32), basis=basis16, scale=scale.astype(np.float32),
             coefficients=coefficients16, clip=np.asarray(fields["clip"], dtype=np.int16),
             frame=np.asarray(fields["frame"], dtype=np.int32), clips=np.array(names),
             clip_complete=np.array(complete, dtype=bool), **per_frame)
