@@ -73,7 +73,7 @@ bench-node: setup
 # ground truth.
 regressor: setup-test
 	$(BIN)/agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz \
-		--settled data/tshirt_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 1
+		--settled data/tshirt_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5
 	$(BIN)/agentdress regressor --database data/trousers_default.h5 --pack data/trousers_sequences.npz
 	$(BIN)/agentdress recurrent --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 	$(BIN)/agentdress recurrent --database data/trousers_default.h5 --pack data/trousers_sequences.npz
