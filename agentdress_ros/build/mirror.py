@@ -48,14 +48,13 @@ def mirrored_poses(poses: np.ndarray, twins: np.ndarray) -> np.ndarray:
 
 
 def garment_mirror(rest: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Where each rest vertex's mirror image lies on the rest garment (V, 3) / faces (T, 3): (corners (V, 3) int, the
+    """Where each rest vertex's mirror image lies on the rest garment (V, 3) / faces (T, 3): (corners (V, 3), the
     vertices of the triangle holding it, barycentric weights (V, 3), largest distance (m) from the image to it)."""
-    import trimesh
+    from ..garment.binding import project_to_surface
 
-    mesh = trimesh.Trimesh(np.asarray(rest, dtype=np.float64), np.asarray(faces), process=False)
-    closest, distance, triangle = trimesh.proximity.closest_point(mesh, mesh.vertices * REFLECTION)
-    weights = trimesh.triangles.points_to_barycentric(mesh.triangles[triangle], closest)
-    return np.asarray(faces)[triangle].astype(np.int64), weights, float(distance.max())
+    rest = np.asarray(rest, dtype=np.float64)
+    corners, weights, distance = project_to_surface(rest * REFLECTION, rest, np.asarray(faces))
+    return corners, weights, float(distance.max())
 
 
 def mirrored_positions(positions: np.ndarray, corners: np.ndarray, weights: np.ndarray) -> np.ndarray:

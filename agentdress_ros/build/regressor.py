@@ -201,24 +201,18 @@ def merged_layers(weights: list, biases: list) -> tuple[list, list]:
     """The layers of one MLP whose output is the mean of N MLPs of the same shape (weights[n][layer] (H_l, H_l+1),
     biases[n][layer] (H_l+1,)): the first layer's units side by side, hidden layers block-diagonal, the output
     layer's weights divided by N and its biases averaged. Exact, since each unit sees only its own MLP's units."""
+    from scipy.linalg import block_diag
+
     count, last = len(weights), len(weights[0]) - 1
     merged_w, merged_b = [], []
     for layer in range(last + 1):
         ws = [w[layer] for w in weights]
-        if layer == last:
+        if layer == last:  # the members' outputs averaged (their inputs side by side, unless the MLP is one layer)
             merged_w.append(np.mean(ws, axis=0) if layer == 0 else np.concatenate(ws, axis=0) / count)
             merged_b.append(np.mean([b[layer] for b in biases], axis=0))
-            continue
-        if layer == 0:
-            merged_w.append(np.concatenate(ws, axis=1))
-        else:
-            block = np.zeros((sum(w.shape[0] for w in ws), sum(w.shape[1] for w in ws)))
-            rows = np.cumsum([0] + [w.shape[0] for w in ws])
-            cols = np.cumsum([0] + [w.shape[1] for w in ws])
-            for n, w in enumerate(ws):
-                block[rows[n]:rows[n + 1], cols[n]:cols[n + 1]] = w
-            merged_w.append(block)
-        merged_b.append(np.concatenate([b[layer] for b in biases]))
+        else:  # the first layer shares the input; deeper ones see only their own member's units
+            merged_w.append(np.concatenate(ws, axis=1) if layer == 0 else block_diag(*ws))
+            merged_b.append(np.concatenate([b[layer] for b in biases]))
     return merged_w, merged_b
 
 
