@@ -213,3 +213,34 @@ def test_floor_drapes_the_held_out_cases_along_another_path_and_compares(quick_e
     shutil.rmtree(folder / "cache" / "floor")  # the pack alone carries the other path's drapes
     again = ground_truth_spread(*args, every=1, workers=0, progress=False, clips=[clip], quick=True)
     assert again["mean_cm"] == report["mean_cm"]
+
+
+def test_pose_model_share_removes_exactly_the_pose_models_error(body):
+    """With drapes built as drape(beta0) + synthesis(beta) - synthesis(beta0), a perfect pose model leaves no error,
+    and the synthesis row's own error is its beta0 output's distance from drape(beta0) (here 1 cm everywhere)."""
+    from types import SimpleNamespace
+
+    from agentdress_ros.engine import Engine, EngineConfig, read_database
+    from agentdress_ros.evaluate.evaluate import Row, pose_model_share
+
+    db = read_database(DATABASE)
+    poses = np.asarray(db.anchor_poses[:3], dtype=np.float64) * 0.7
+    betas = np.asarray(db.training_betas[[3, 9]], dtype=np.float64)
+    config = {"pose_model": "examples"}
+    engine = Engine(db, body, EngineConfig(**config))
+
+    def outputs(beta):
+        engine.set_shape(beta)
+        frames = []
+        for pose in poses:
+            engine.reset()
+            frames.append(np.asarray(engine.synthesize(pose, np.zeros(3)), dtype=np.float64))
+        return np.asarray(frames)
+
+    at_beta0 = outputs(np.asarray(db.beta0))
+    beta0_drapes = at_beta0 + np.array([0.0, 0.01, 0.0])  # 1 cm off the pose model everywhere
+    drapes = np.stack([beta0_drapes + outputs(beta) - at_beta0 for beta in betas], axis=1)
+    test = SimpleNamespace(poses=poses, betas=betas, drapes=drapes)
+    [row] = pose_model_share(db, body, test, beta0_drapes, [Row("synthesis", "default", config)])
+    assert row["perfect_pose_model_error_mean_cm"] < 1e-6
+    assert row["error_per_shape_cm"] == pytest.approx([1.0, 1.0], abs=1e-6)

@@ -458,13 +458,17 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
             row.results.update(timing)
         stability = stability_report(db, body, garment)
         temporal = temporal_report(models, [r.name for r in rows], test.dynamic)
-        beta0 = []
+        beta0, pose_share = [], []
         if beta0_pack is not None and (Path(beta0_pack).is_file() or simulate_beta0):
             from .beta0 import held_out_beta0
 
             drapes, poses, _ = held_out_beta0(db, body, garment, config, cache, workers=workers, progress=progress,
                                               pack=beta0_pack)
             beta0 = beta0_report(db, body, poses, drapes)
+            if len(poses) == len(test.poses) and np.allclose(np.asarray(poses), np.asarray(test.poses)):
+                synthesis_rows = [r for r in rows if r.group in ("default", "regressor", "recurrent", "kdsm")
+                                  and r.config.get("shape_model", True)]
+                pose_share = pose_model_share(db, body, test, np.asarray(drapes), synthesis_rows)
 
     baseline = rows[0].results
     default = next(i for i, r in enumerate(rows) if r.group == "default")
@@ -516,6 +520,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
         "stability": stability,
         "temporal": temporal,
         "beta0": beta0,
+        "pose_model_share": pose_share,
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -571,6 +576,38 @@ def _inside_cell(entry: dict, prefix: str = "") -> str:
             f"{100 * entry[f'{prefix}inside_true_fraction']:.2f})")
 
 
+def pose_model_share(db, body, test, beta0_drapes, rows) -> list[dict]:
+    """How much of each synthesis row's error its pose model makes: the row against the held-out drapes at every
+    shape, and the same with its own beta0 output replaced by the drape of the pose at beta0,
+    drape(beta0) + synthesis(beta) - synthesis(beta0) (a perfect pose model, up to the beta0 drape's own path noise).
+    What stays is the shape term's error. beta0_drapes (P, V, 3): the test poses' drapes at beta0, in test order."""
+    from ..engine import Engine, EngineConfig
+
+    out = []
+    for row in rows:
+        engine = Engine(db, body, EngineConfig(**row.config))
+
+        def outputs(beta):
+            engine.set_shape(beta)
+            frames = []
+            for pose in test.poses:
+                engine.reset()
+                frames.append(np.asarray(engine.synthesize(pose, np.zeros(3)), dtype=np.float64))
+            return np.asarray(frames)
+
+        at_beta0 = outputs(np.asarray(db.beta0))
+        synthesis, oracle = [], []
+        for k, beta in enumerate(test.betas):
+            frames = outputs(beta)
+            synthesis.append(np.linalg.norm(frames - test.drapes[:, k], axis=2).mean() * 100.0)
+            oracle.append(np.linalg.norm(beta0_drapes + frames - at_beta0 - test.drapes[:, k], axis=2).mean() * 100.0)
+        out.append({"name": row.name, "config": row.config, "error_mean_cm": float(np.mean(synthesis)),
+                    "perfect_pose_model_error_mean_cm": float(np.mean(oracle)),
+                    "error_per_shape_cm": [float(e) for e in synthesis],
+                    "perfect_pose_model_error_per_shape_cm": [float(e) for e in oracle]})
+    return out
+
+
 def trade_markdown(report: dict) -> str:
     lines = ["| # | configuration | mean error (cm) | 95 % interval | minus node default (paired 95 % interval) | "
              "p95 error (cm) | vs baseline | inside body (self-overlap / truly) | face centres inside | ms / frame | "
@@ -612,6 +649,17 @@ def trade_markdown(report: dict) -> str:
             low, high = r["error_mean_ci_cm"]
             lines.append(f"| {r['name']} | {r['error_mean_cm']:.2f} | {low:.2f}-{high:.2f} | "
                          f"{r['error_p95_cm']:.2f} |")
+    if report.get("pose_model_share"):
+        lines += ["", "What the pose model costs: each synthesis row, and the same with its beta0 output replaced by "
+                  "the held-out drape at beta0 (drape(beta0) + synthesis(beta) - synthesis(beta0): a perfect pose "
+                  "model; what stays is the shape term's error), mean error (cm) over the shapes and by shape:", "",
+                  "| configuration | synthesis | with a perfect pose model | by shape: synthesis / perfect |",
+                  "|---|---|---|---|"]
+        for r in report["pose_model_share"]:
+            by_shape = ", ".join(f"{a:.2f} / {b:.2f}" for a, b in zip(r["error_per_shape_cm"],
+                                                                     r["perfect_pose_model_error_per_shape_cm"]))
+            lines.append(f"| {r['name']} | {r['error_mean_cm']:.2f} | {r['perfect_pose_model_error_mean_cm']:.2f} | "
+                         f"{by_shape} |")
     truth = report["test_set"]
     lines += ["", f"Ground truth: {truth['drapes']} newton drapes of {len(truth['poses'])} held-out poses x "
               f"{len(truth['betas'])} shapes; {_inside_cell(truth, 'ground_truth_')} of their vertices inside the "
