@@ -284,6 +284,32 @@ def test_drapes_from_rest_are_draped_like_the_anchors_in_a_spread_order(tmp_path
         settle_pack(DATABASE, PACK, out, 3, workers=0, progress=False, start="moving")
 
 
+def test_drapes_from_rest_of_another_garment_at_the_packs_poses(tmp_path):
+    """A garment without a sequence pack of its own (the long sleeve) is draped from rest at the poses of another
+    garment's pack: the pack written is the database's garment (its vertices, faces and rest), and the drapes come
+    back from its rest-frame offsets. Settling from the pack's own cloth needs the pack's garment: refused by name."""
+    from agentdress_ros.build.jobs import DrapeStore
+    from agentdress_ros.build.settled import settle_pack
+    from agentdress_ros.engine import read_database
+
+    sleeve_path = ROOT / "data" / "longsleeve_default.h5"
+    sleeve = read_database(sleeve_path)
+    assert sleeve.n_vertices != load_sequence_pack(PACK)["garment_vertices"]
+    out = tmp_path / "sleeve_rest.npz"
+    tiny = {"ramp_frames": 3, "max_frames": 4, "min_frames": 2}
+    report = settle_pack(sleeve_path, PACK, out, 2, workers=0, progress=False, drape=tiny, start="rest",
+                         components=2)
+    packed = load_sequence_pack(out)
+    assert report["drapes"] == 2 and str(packed["garment"]) == sleeve.garment
+    assert packed["rest"].shape == (sleeve.n_vertices, 3)
+    np.testing.assert_array_equal(packed["faces"], sleeve.faces)
+    np.testing.assert_allclose(packed["rest"], sleeve.rest, atol=1e-6)
+    assert report["rest_frame_error_mean_m"] < 1e-4  # 2 drapes, 2 components: exact up to the float16 storage
+    assert DrapeStore(tmp_path / "sleeve_rest.npz.work" / "drapes").load("rest_0000_00").shape == (sleeve.n_vertices, 3)
+    with pytest.raises(ValueError, match="longsleeve_default.h5"):
+        settle_pack(sleeve_path, PACK, tmp_path / "dynamic.npz", 2, workers=0, progress=False)
+
+
 def test_validation_on_held_out_clips_static_drapes_weighs_their_copies(database, frames):
     """--validate-settled: each fold trains on the other clips' frames and static drapes (count copies) and scores
     the held-out clips' static drapes; 0 copies is the model without them."""

@@ -98,6 +98,12 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
     check_training_clips([str(c) for c in pack["clips"]])
     frames = spread_frames(pack, count)
     frames = frames[spread_order(len(frames))]
+    same_garment = str(pack["garment"]) == db.garment and int(pack["garment_vertices"]) == db.n_vertices
+    if start == "dynamic" and not same_garment:
+        raise ValueError(f"{pack_path}: its frames are the {pack['garment']} at {int(pack['garment_vertices'])} "
+                         f"vertices, and settling from them needs that garment's database, not {db_path} "
+                         f"({db.garment}, {db.n_vertices} vertices); --start rest drapes any garment at the pack's "
+                         "poses")
     if start == "rest":
         jobs, starts = rest_start_jobs(pack, db, frames, drape), {}
     elif start == "dynamic":
@@ -112,7 +118,8 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
         jobs = [job for job in jobs if store.has(job.key)]
     else:
         run_jobs(jobs, store, workers=workers, progress=progress)
-    rest = np.asarray(pack["rest"], dtype=np.float64)
+    # the database's garment, which need not be the pack's with --start rest (the pack gives only the poses)
+    rest = np.asarray(db.rest, dtype=np.float64)
     offsets = rest_frame_offsets(body, body.shape(db.beta0), db.skin_indices, db.skin_weights, rest,
                                  [store.load(job.key) for job in jobs], [job.pose for job in jobs],
                                  np.zeros((len(jobs), 3)))
@@ -123,8 +130,8 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
               "root_velocity": np.zeros((n, 3)), "cloth_speed": np.zeros(n), "body_speed": np.zeros(n),
               "clip": pack["clip"][done], "frame": pack["frame"][done]}
     names = [str(c) for c in pack["clips"]]
-    error, explained, k = write_pack(out, str(pack["garment"]), int(pack["garment_vertices"]), pack["beta"], rest,
-                                     pack["faces"], offsets, fields, names, [True] * len(names),
+    error, explained, k = write_pack(out, db.garment, db.n_vertices, np.asarray(db.beta0), rest,
+                                     np.asarray(db.faces), offsets, fields, names, [True] * len(names),
                                      components)
     moved = [s["displacement_mean"] for s in stats]
     return {"pack": str(out), "bytes": Path(out).stat().st_size, "drapes": n, "source": str(pack_path), "start": start,
