@@ -68,7 +68,7 @@ bench: setup
 bench-node: setup
 	$(BIN)/python -m agentdress_ros.evaluate.bench_node
 
-# Retrain the regressor pose model of both shipped databases (on their static drapes from rest and their mirror
+# Retrain the regressor pose model of the three shipped databases (on their static drapes from rest and their mirror
 # images; a no-op when they are up to date), then rerun both trade tables from the packed
 # ground truth.
 regressor: setup-test
@@ -76,6 +76,8 @@ regressor: setup-test
 		--settled data/tshirt_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5
 	$(BIN)/agentdress regressor --database data/trousers_default.h5 --pack data/trousers_sequences.npz \
 		--settled data/trousers_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5
+	$(BIN)/agentdress regressor --database data/longsleeve_default.h5 --pack data/tshirt_sequences.npz \
+		--settled data/longsleeve_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5
 	$(BIN)/agentdress recurrent --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 	$(BIN)/agentdress recurrent --database data/trousers_default.h5 --pack data/trousers_sequences.npz
 	$(BIN)/agentdress santesteban --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz

@@ -64,7 +64,8 @@ PARAMETERS: dict[str, Spec] = {
                                "garment_model/santesteban group; one agent only, README 'Santesteban et al.'s "
                                "system')"),
     "engine": Spec(["pose_model=examples", "tshirt:pose_model=regressor", "tshirt:fold=false",
-                    "trousers:pose_model=regressor", "trousers:fold=false"],
+                    "trousers:pose_model=regressor", "trousers:fold=false", "longsleeve:pose_model=regressor",
+                    "longsleeve:fold=false"],
                    "EngineConfig knobs of the garments with a database, 'field=value', or 'garment:field=value' "
                    "for one garment: pose_model (lbs, examples, regressor, recurrent, kdsm), fold, neighbors, "
                    "components, anchors, shape_model, penetration, projection, decay, damping, dtype (float32, "
