@@ -221,26 +221,18 @@ def test_pose_model_share_removes_exactly_the_pose_models_error(body):
     from types import SimpleNamespace
 
     from agentdress_ros.engine import Engine, EngineConfig, read_database
-    from agentdress_ros.evaluate.evaluate import Row, pose_model_share
+    from agentdress_ros.evaluate.evaluate import Row, pose_model_share, synthesize_poses
 
     db = read_database(DATABASE)
     poses = np.asarray(db.anchor_poses[:3], dtype=np.float64) * 0.7
     betas = np.asarray(db.training_betas[[3, 9]], dtype=np.float64)
+    beta0 = np.asarray(db.beta0)
     config = {"pose_model": "examples"}
     engine = Engine(db, body, EngineConfig(**config))
-
-    def outputs(beta):
-        engine.set_shape(beta)
-        frames = []
-        for pose in poses:
-            engine.reset()
-            frames.append(np.asarray(engine.synthesize(pose, np.zeros(3)), dtype=np.float64))
-        return np.asarray(frames)
-
-    at_beta0 = outputs(np.asarray(db.beta0))
+    at_beta0 = synthesize_poses(engine, beta0, poses)
     beta0_drapes = at_beta0 + np.array([0.0, 0.01, 0.0])  # 1 cm off the pose model everywhere
-    drapes = np.stack([beta0_drapes + outputs(beta) - at_beta0 for beta in betas], axis=1)
+    drapes = np.stack([beta0_drapes + synthesize_poses(engine, beta, poses) - at_beta0 for beta in betas], axis=1)
     test = SimpleNamespace(poses=poses, betas=betas, drapes=drapes)
-    [row] = pose_model_share(db, body, test, beta0_drapes, [Row("synthesis", "default", config)])
+    [row] = pose_model_share([Row("synthesis", "default", config)], [engine], test, beta0, beta0_drapes)
     assert row["perfect_pose_model_error_mean_cm"] < 1e-6
     assert row["error_per_shape_cm"] == pytest.approx([1.0, 1.0], abs=1e-6)

@@ -129,13 +129,9 @@ def beta0_report(db, body, poses, drapes) -> list[dict]:
                 or config.get("pose_model") == "kdsm" and db.kdsm_model is None):
             continue
         engine = Engine(db, body, EngineConfig(**config))
-        errors = []
-        for pose, truth in zip(poses, drapes):
-            engine.reset()
-            out = np.asarray(engine.synthesize(pose, np.zeros(3)), dtype=np.float64)
-            errors.append(np.linalg.norm(out - truth, axis=1))
+        errors = np.linalg.norm(synthesize_poses(engine, np.asarray(db.beta0), poses) - np.asarray(drapes), axis=2)
         cases.append([float(e.mean() * 100.0) for e in errors])
-        errors = np.concatenate(errors)
+        errors = errors.ravel()
         rows.append({"name": name, "config": config, "error_mean_cm": float(errors.mean() * 100.0),
                      "error_p95_cm": float(np.percentile(errors, 95) * 100.0)})
     intervals, _ = bootstrap_intervals(cases)
@@ -215,6 +211,18 @@ def vertex_parts(db) -> tuple[list, np.ndarray]:
     return [names[i] for i in used], np.searchsorted(used, labels)
 
 
+def synthesize_poses(model, beta, poses) -> np.ndarray:
+    """The model's garment (P, V, 3) for each of the independent static poses (P, B, 3) at shape beta: reset
+    before each pose, so no decay history passes between them."""
+    model.set_shape(beta)
+    frames = []
+    for pose in poses:
+        _reset(model)
+        # a copy: a model may return the same buffer every frame
+        frames.append(np.array(model.synthesize(pose, np.zeros(3)), dtype=np.float64))
+    return np.asarray(frames)
+
+
 def accuracy(model, test, inside_tests, parts=None, faces=None) -> dict:
     """Errors of a model on every (pose, shape) of the test set: cm mean / p95, inside fraction, per shape, and
     the mean of each case (shape-major: case k * poses + p), which the bootstrap resamples; with parts
@@ -223,11 +231,8 @@ def accuracy(model, test, inside_tests, parts=None, faces=None) -> dict:
     skin shows through flat triangles although their vertices are outside."""
     errors, inside, inside_faces, per_shape = [], [], [], []
     for k, beta in enumerate(test.betas):
-        model.set_shape(beta)
         shape_errors = []
-        for p, pose in enumerate(test.poses):
-            _reset(model)  # independent static poses: no decay history between them
-            out = np.asarray(model.synthesize(pose, np.zeros(3)), dtype=np.float64)
+        for p, out in enumerate(synthesize_poses(model, beta, test.poses)):
             error = np.linalg.norm(out - test.drapes[p, k], axis=1)
             errors.append(error)
             shape_errors.append(error.mean())
@@ -466,9 +471,10 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
                                               pack=beta0_pack)
             beta0 = beta0_report(db, body, poses, drapes)
             if len(poses) == len(test.poses) and np.allclose(np.asarray(poses), np.asarray(test.poses)):
-                synthesis_rows = [r for r in rows if r.group in ("default", "regressor", "recurrent", "kdsm")
-                                  and r.config.get("shape_model", True)]
-                pose_share = pose_model_share(db, body, test, np.asarray(drapes), synthesis_rows)
+                synthesis = [i for i, r in enumerate(rows) if r.group in ("default", "regressor", "recurrent", "kdsm")
+                             and r.config.get("shape_model", True)]
+                pose_share = pose_model_share([rows[i] for i in synthesis], [models[i] for i in synthesis], test,
+                                              np.asarray(db.beta0), np.asarray(drapes))
 
     baseline = rows[0].results
     default = next(i for i, r in enumerate(rows) if r.group == "default")
@@ -576,29 +582,17 @@ def _inside_cell(entry: dict, prefix: str = "") -> str:
             f"{100 * entry[f'{prefix}inside_true_fraction']:.2f})")
 
 
-def pose_model_share(db, body, test, beta0_drapes, rows) -> list[dict]:
-    """How much of each synthesis row's error its pose model makes: the row against the held-out drapes at every
-    shape, and the same with its own beta0 output replaced by the drape of the pose at beta0,
+def pose_model_share(rows, models, test, beta0, beta0_drapes) -> list[dict]:
+    """How much of each synthesis row's error its pose model makes: the row's model against the held-out drapes at
+    every shape, and the same with its own beta0 output replaced by the drape of the pose at beta0,
     drape(beta0) + synthesis(beta) - synthesis(beta0) (a perfect pose model, up to the beta0 drape's own path noise).
     What stays is the shape term's error. beta0_drapes (P, V, 3): the test poses' drapes at beta0, in test order."""
-    from ..engine import Engine, EngineConfig
-
     out = []
-    for row in rows:
-        engine = Engine(db, body, EngineConfig(**row.config))
-
-        def outputs(beta):
-            engine.set_shape(beta)
-            frames = []
-            for pose in test.poses:
-                engine.reset()
-                frames.append(np.asarray(engine.synthesize(pose, np.zeros(3)), dtype=np.float64))
-            return np.asarray(frames)
-
-        at_beta0 = outputs(np.asarray(db.beta0))
+    for row, model in zip(rows, models):
+        at_beta0 = synthesize_poses(model, beta0, test.poses)
         synthesis, oracle = [], []
         for k, beta in enumerate(test.betas):
-            frames = outputs(beta)
+            frames = synthesize_poses(model, beta, test.poses)
             synthesis.append(np.linalg.norm(frames - test.drapes[:, k], axis=2).mean() * 100.0)
             oracle.append(np.linalg.norm(beta0_drapes + frames - at_beta0 - test.drapes[:, k], axis=2).mean() * 100.0)
         out.append({"name": row.name, "config": row.config, "error_mean_cm": float(np.mean(synthesis)),
