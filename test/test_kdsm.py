@@ -20,7 +20,9 @@ from agentdress_ros.kdsm.inverse import candidate_parents, graph_laplacian, harm
 from agentdress_ros.kdsm.lattice import lattice_tet_nodes, locate_lattice_tets, node_positions, signed_volumes
 from agentdress_ros.kdsm.mesh import (KDSMSettings, build_kdsm, diffused_weights, load_kdsm, save_kdsm,
                                       spatially_ordered)
-from agentdress_ros.kdsm.model import (compare, fit_displacements, kdsm_targets, posed_kdsm, store_kdsm_model)
+from agentdress_ros.kdsm.model import (SurfacePoser, compare, fit_displacements, kdsm_targets, posed_kdsm,
+                                       store_kdsm_model)
+from agentdress_ros.kdsm.surface import anchor_garment, from_surface, surface_frames, to_surface
 from agentdress_ros.kdsm.training import pack_frames, reconstruction_table, spread_frames, training_targets
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -456,11 +458,44 @@ def test_the_pose_model_benchmark_times_every_pose_model_on_a_real_database(data
 
 
 @pytest.mark.filterwarnings("ignore:A column-vector y was passed")  # two training frames: one component
-def test_the_comparison_scores_both_models_on_held_out_clips(kdsm, database, targets):
-    report = compare(kdsm, database, targets, pose_dofs(database, "sensitive"), TINY, folds=2)
+def test_the_comparison_scores_both_models_on_held_out_clips(kdsm, body, shape, database, targets):
+    report = compare(kdsm, database, targets, pose_dofs(database, "sensitive"), TINY, folds=2,
+                     surface=SurfacePoser(database, body, shape))
     errors = report["error_cm"]
+    assert errors["surface_targets"] < 1e-9  # body-surface offsets are an exact change of coordinates
     assert report["frames"] == 4 and sum(f["frames"] for f in report["folds"]) == 4
     assert all(not set(a["clips"]) & set(b["clips"]) for a, b in zip(report["folds"], report["folds"][1:]))
     assert errors["kdsm_targets"] < 0.1  # the targets themselves reproduce the drapes (inverse embedding)
     assert errors["rest_skinned"] > 1.0 and errors["fixed_embedding"] > 1.0  # no pose dependence: centimetres
     assert all(np.isfinite(v) and v >= 0 for v in errors.values())
+
+
+def test_body_surface_offsets_are_exact_coordinates_and_ignore_a_rigid_motion(body, shape, database):
+    """The paper's baseline (Jin et al.): offsets in each garment vertex's surface frame. The frames are orthonormal
+    with the body's normal as their third axis; offsets round-trip exactly; moving body and garment rigidly together
+    leaves the offsets unchanged (analytic: a rigid motion maps each frame and each point alike)."""
+    from agentdress_ros.kdsm.inverse import region_groups
+
+    rest = np.asarray(database.rest, dtype=np.float64)
+    face_groups, point_groups = region_groups(body, database.skin_indices, database.skin_weights)
+    anchors = anchor_garment(rest, shape.vertices, body.body_faces, face_groups, point_groups)
+    origin, frames = surface_frames(anchors, shape.vertices, body.body_faces)
+    assert np.allclose(np.einsum("vij,vkj->vik", frames, frames), np.eye(3), atol=1e-12)
+    offsets = to_surface(rest, origin, frames)
+    assert np.abs(from_surface(offsets, origin, frames) - rest).max() < 1e-12
+    # the T-shirt sits on the body: its normal offsets are mostly small and positive (outside the skin)
+    assert np.median(offsets[:, 2]) > 0 and np.median(np.abs(offsets[:, 2])) < 0.05
+    # every vertex binds to a face of one of its own regions
+    bound = np.array([np.flatnonzero((body.body_faces == tri).all(axis=1))[0] for tri in anchors.triangles[:50]])
+    assert point_groups[np.arange(50), face_groups[bound]].all()
+    rotation = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))[0]
+    rotation *= np.linalg.det(rotation)  # a proper rotation
+    move = lambda x: x @ rotation.T + np.array([0.3, -1.0, 2.0])  # noqa: E731
+    moved_origin, moved_frames = surface_frames(anchors, move(shape.vertices), body.body_faces)
+    assert np.abs(to_surface(move(rest), moved_origin, moved_frames) - offsets).max() < 1e-10
+    # and a posed body carries the garment with it: the skinned frames follow the posed surface
+    posed = body.posed_vertices(shape, posed_transforms(body, shape, {"LeftArm": [0.0, 0.0, -1.0]}))
+    posed_origin, posed_frames = surface_frames(anchors, posed, body.body_faces)
+    assert np.allclose(np.einsum("vij,vkj->vik", posed_frames, posed_frames), np.eye(3), atol=1e-12)
+    torso = point_groups[:, 0] & (point_groups.sum(axis=1) == 1)
+    assert np.abs(posed_origin[torso] - origin[torso]).max() < 0.02  # the arm moved, the torso's anchors did not

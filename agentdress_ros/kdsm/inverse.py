@@ -27,7 +27,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from ..garment.binding import bind_with_clearance, evaluate_surface_binding, vertex_normals
+from ..garment.binding import evaluate_surface_binding, vertex_normals
+from .surface import closest_in_groups
 
 #: Hybrid vertex status codes.
 SINGLE, AGREED, MORPH_VALIDATED, MORPHED, FALLBACK = 0, 1, 2, 3, 4
@@ -235,28 +236,8 @@ def surface_offset_guess(posed_body, rest_body, faces, points, face_groups=None,
     regions it is skinned to): a torso vertex never takes its offset from a hand resting on the torso, whose rest
     place is far away. Without them, every face is a candidate.
     """
-    points = np.asarray(points, dtype=np.float64)
-    if face_groups is None:
-        binding = bind_with_clearance(points, posed_body, faces)
-        return evaluate_surface_binding(binding, rest_body, vertex_normals(rest_body, faces))
-    rest_normals = vertex_normals(rest_body, faces)
-    best = np.full(len(points), np.inf)
-    out = np.full((len(points), 3), np.nan)
-    for g in range(point_groups.shape[1]):
-        rows = np.flatnonzero(point_groups[:, g])
-        group_faces = faces[face_groups == g]
-        if len(rows) == 0 or len(group_faces) == 0:
-            continue
-        binding = bind_with_clearance(points[rows], posed_body, group_faces)
-        base = np.einsum("pk,pkd->pd", binding.barycentric, posed_body[binding.triangles])
-        distance = np.linalg.norm(points[rows] - base, axis=1)
-        closer = distance < best[rows]
-        rows, binding_rows = rows[closer], np.flatnonzero(closer)
-        best[rows] = distance[closer]
-        out[rows] = evaluate_surface_binding(
-            type(binding)(binding.triangles[binding_rows], binding.barycentric[binding_rows],
-                          binding.offset[binding_rows]), rest_body, rest_normals)
-    return out
+    binding = closest_in_groups(points, posed_body, faces, face_groups, point_groups)
+    return evaluate_surface_binding(binding, rest_body, vertex_normals(rest_body, faces))
 
 
 def region_groups(body, skin_indices, skin_weights, minimum: float = 0.05):

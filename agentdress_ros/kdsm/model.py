@@ -12,8 +12,8 @@ database (`--out`, group pose_model/kdsm, engine.database.KdsmModel); the engine
 (engine.pose_models.KdsmPoseModel) predicts d, re-embeds rest + d and skins the parent tets (world positions).
 
 `--compare` runs the paper's comparison on the same frames, the same clip folds and the same network: (a) d learned
-in the KDSM against (b) the garment's rest-frame offsets learned from its own skinning (what the `regressor` learns),
-both scored as posed world positions against the held-out clips' drapes (and, when given, `--beta0-pack`: the
+in the KDSM against (b) the garment's rest-frame offsets learned from its own skinning (what the `regressor` learns)
+and (c) offsets from the skinned body surface (the paper's baseline, Jin et al.; kdsm.surface), all scored as posed world positions against the held-out clips' drapes (and, when given, `--beta0-pack`: the
 evaluation's held-out poses draped at beta0, evaluate.beta0).
 """
 from __future__ import annotations
@@ -152,6 +152,36 @@ def fit_offsets(targets: KdsmTargets, rows, dofs, settings: RegressorSettings):
     return fit(train.offset_data(), dofs, settings)[0]
 
 
+class SurfacePoser:
+    """The body-surface parameterisation (kdsm.surface) of the database garment on the beta0 body: each vertex bound
+    at rest to its closest body point among its own regions (as Method 2 of the inverse embedding)."""
+
+    def __init__(self, db, body, shape):
+        from .inverse import region_groups
+        from .surface import anchor_garment
+
+        self.body, self.shape, self.faces = body, shape, body.body_faces
+        face_groups, point_groups = region_groups(body, db.skin_indices, db.skin_weights)
+        self.anchors = anchor_garment(np.asarray(db.rest, dtype=np.float64), shape.vertices, self.faces,
+                                      face_groups, point_groups)
+
+    def frames(self, transforms):
+        """Surface points (F, V, 3) and frames (F, V, 3, 3) of the anchors at bone transforms (F, B, 3, 4)."""
+        from .surface import surface_frames
+
+        parts = [surface_frames(self.anchors, self.body.posed_vertices(self.shape, np.ascontiguousarray(t)),
+                                self.faces) for t in transforms]
+        return np.stack([p[0] for p in parts]), np.stack([p[1] for p in parts])
+
+
+
+def fit_surface_offsets(targets: KdsmTargets, offsets, rows, dofs, settings: RegressorSettings):
+    """The same regressor trained on the body-surface offsets (F, V, 3) of the same rows (the paper's baseline)."""
+    train = training_rows(targets, rows, settings.examples)
+    data = TrainingData(targets.poses[train], offsets[train], targets.groups[train])
+    return fit(data, dofs, settings)[0]
+
+
 def posed_kdsm(kdsm: KDSM, rest, skin_indices, skin_weights, transforms, displacements):
     """(F, V, 3) world positions of displacements (F, V, 3) through the KDSM at poses `transforms` (F, B, 3, 4), and
     the count of vertex-frames skinned outside the shell."""
@@ -188,20 +218,28 @@ def _projected(regressor, truth):
     return ((centred @ basis.T) @ basis + mean).reshape(truth.shape)
 
 
-def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSettings, folds: int = 3) -> dict:
+def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSettings, folds: int = 3,
+            surface: SurfacePoser | None = None) -> dict:
     """The paper's comparison on held-out clips: per fold (whole clips, build.regressor.clip_folds) both models are
     trained on the other clips' frames (plus the database's drapes, settings.examples times) with the same network
     and scored on the held-out clips' frames as posed world positions (mean vertex distance, cm). Also: each target
     through its own map (the KDSM's inverse embedding error; the skinned offsets are exact), each target projected on
-    its model's PCA, no pose dependence (the rest garment skinned; the fixed embedding, d = 0)."""
+    its model's PCA, no pose dependence (the rest garment skinned; the fixed embedding, d = 0). With `surface`, the
+    paper's own baseline as well: the same regressor on offsets from the skinned body surface (kdsm.surface)."""
+    from .surface import from_surface, to_surface
+
     rest = np.asarray(db.rest, dtype=np.float64)
     skin_i, skin_w = db.skin_indices, db.skin_weights
     pack_rows = np.flatnonzero(targets.groups != "examples")
     clips = np.unique(targets.groups[pack_rows])
     names = ("kdsm", "offsets", "kdsm_targets", "kdsm_pca", "offsets_pca", "rest_skinned", "fixed_embedding")
+    if surface is not None:
+        names += ("surface", "surface_targets", "surface_pca")
+        origin, frames = surface.frames(targets.transforms)
+        surface_x = to_surface(targets.drapes, origin, frames)
     errors = {n: [] for n in names}
     outside = {"kdsm": 0, "kdsm_targets": 0}
-    fold_rows, seconds = [], {"fit_kdsm": 0.0, "fit_offsets": 0.0}
+    fold_rows, seconds = [], {"fit_kdsm": 0.0, "fit_offsets": 0.0, "fit_surface": 0.0}
     for held in clip_folds(clips, folds):
         test = pack_rows[np.isin(targets.groups[pack_rows], held)]
         train = pack_rows[~np.isin(targets.groups[pack_rows], held)]
@@ -229,24 +267,35 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
                                                             t.transforms), t.drapes))
         posed, _ = posed_kdsm(kdsm, rest, skin_i, skin_w, t.transforms, np.zeros_like(t.displacements))
         errors["fixed_embedding"].append(_errors(posed, t.drapes))
+        if surface is not None:
+            started = time.perf_counter()
+            reg_s = fit_surface_offsets(targets, surface_x, train, dofs, settings)
+            seconds["fit_surface"] += time.perf_counter() - started
+            for name, offsets in (("surface", predict(reg_s, t.poses)), ("surface_targets", surface_x[test]),
+                                  ("surface_pca", _projected(reg_s, surface_x[test]))):
+                errors[name].append(_errors(from_surface(offsets, origin[test], frames[test]), t.drapes))
         fold_rows.append({"clips": list(held), "frames": int(len(test)),
-                          "kdsm_cm": float(errors["kdsm"][-1].mean() * 100),
-                          "offsets_cm": float(errors["offsets"][-1].mean() * 100)})
+                          **{f"{n}_cm": float(errors[n][-1].mean() * 100) for n in names
+                             if n in ("kdsm", "offsets", "surface")}})
     total = sum(len(e) for e in errors["kdsm"])
     report = {n: float(np.concatenate(errors[n]).mean() * 100) for n in names}
-    per_frame = {n: np.concatenate(errors[n]) for n in ("kdsm", "offsets")}
+    per_frame = {n: np.concatenate(errors[n]) for n in ("kdsm", "offsets", "surface") if n in names}
+    better = {"kdsm_better_frames": float((per_frame["kdsm"] < per_frame["offsets"]).mean())}
+    if surface is not None:
+        better["kdsm_better_than_surface_frames"] = float((per_frame["kdsm"] < per_frame["surface"]).mean())
     return {"error_cm": report, "frames": int(total), "vertices": int(len(rest)), "folds": fold_rows,
-            "outside_shell_fraction": {k: v / (total * len(rest)) for k, v in outside.items()},
-            "kdsm_better_frames": float((per_frame["kdsm"] < per_frame["offsets"]).mean()),
+            "outside_shell_fraction": {k: v / (total * len(rest)) for k, v in outside.items()}, **better,
             "fit_seconds": seconds, "settings": asdict(settings), "dofs": int(len(dofs)),
             "training_rows_per_fold": "other folds' pack frames + examples x database drapes"}
 
 
 def test_set_errors(kdsm: KDSM, db, body, shape, targets: KdsmTargets, dofs, settings: RegressorSettings, poses,
-                    drapes) -> dict:
-    """Both models trained on every pack frame of `targets` (plus the drapes) and scored on held-out poses (P, B, 3)
-    draped at beta0 (P, V, 3) (evaluate.beta0): mean vertex distance (cm), all and per pose."""
+                    drapes, surface: SurfacePoser | None = None) -> dict:
+    """Both models (with `surface`, the body-surface offsets too) trained on every pack frame of `targets` (plus the
+    drapes) and scored on held-out poses (P, B, 3) draped at beta0 (P, V, 3) (evaluate.beta0): mean vertex distance
+    (cm), all and per pose."""
     from ..engine.pose_models import canonical_poses
+    from .surface import from_surface, to_surface
 
     rows = np.flatnonzero(targets.groups != "examples")
     poses = canonical_poses(poses)
@@ -264,10 +313,16 @@ def test_set_errors(kdsm: KDSM, db, body, shape, targets: KdsmTargets, dofs, set
     fixed, _ = posed_kdsm(kdsm, rest, db.skin_indices, db.skin_weights, transforms, np.zeros_like(drapes))
     rows_out = {"kdsm": _errors(posed_d, drapes), "offsets": _errors(posed_x, drapes),
                 "rest_skinned": _errors(rest_skinned, drapes), "fixed_embedding": _errors(fixed, drapes)}
+    models = (reg_d, reg_x)
+    if surface is not None:
+        origin, frames = surface.frames(targets.transforms)
+        reg_s = fit_surface_offsets(targets, to_surface(targets.drapes, origin, frames), rows, dofs, settings)
+        origin, frames = surface.frames(transforms)
+        rows_out["surface"] = _errors(from_surface(predict(reg_s, poses), origin, frames), drapes)
+        models += (reg_s,)
     return {"poses": int(len(poses)), "error_cm": {k: float(v.mean() * 100) for k, v in rows_out.items()},
             "per_pose_cm": {k: (v * 100).round(3).tolist() for k, v in rows_out.items()},
-            "outside_shell_fraction": outside / drapes.shape[0] / drapes.shape[1],
-            "models": (reg_d, reg_x)}
+            "outside_shell_fraction": outside / drapes.shape[0] / drapes.shape[1], "models": models}
 
 
 def frame_cost(db_path, body, poses, repeats: int = 5) -> dict:
@@ -379,10 +434,11 @@ def main(argv=None) -> int:
     report["out"] = str(args.out)
     report["bytes"] = {"database": Path(args.database).stat().st_size, "out": Path(args.out).stat().st_size}
     if args.compare:
-        report["clip_folds"] = compare(kdsm, db, targets, dofs, reg_settings, args.folds)
+        surface = SurfacePoser(db, body, shape)
+        report["clip_folds"] = compare(kdsm, db, targets, dofs, reg_settings, args.folds, surface)
         if args.beta0_pack:
             report["test_set_beta0"] = beta0_comparison(kdsm, db, body, shape, targets, dofs, reg_settings,
-                                                        args.beta0_pack, args.beta0_test_set)
+                                                        args.beta0_pack, args.beta0_test_set, surface)
         from ..evaluate.testset import HeldOutConfig, default_clip_paths, held_out_poses
 
         _, _, sequence, _ = held_out_poses(body, HeldOutConfig(clips=default_clip_paths()[:1]))
@@ -395,7 +451,8 @@ def main(argv=None) -> int:
     return 0
 
 
-def beta0_comparison(kdsm, db, body, shape, targets, dofs, settings, pack, test_set: str = "v1") -> dict:
+def beta0_comparison(kdsm, db, body, shape, targets, dofs, settings, pack, test_set: str = "v1",
+                     surface: SurfacePoser | None = None) -> dict:
     """test_set_errors on the evaluation's held-out poses at beta0 (evaluate.beta0, from a copy of the packed
     drapes: nothing is draped when the pack holds them all) of held-out set `test_set` ("v1" or "v2")."""
     import shutil
@@ -412,7 +469,7 @@ def beta0_comparison(kdsm, db, body, shape, targets, dofs, settings, pack, test_
         shutil.copyfile(pack, copy)
         drapes, poses, labels = held_out_beta0(db, body, garment, config, Path(folder) / "cache", workers=0,
                                                progress=False, pack=copy)
-    out = test_set_errors(kdsm, db, body, shape, targets, dofs, settings, poses, drapes)
+    out = test_set_errors(kdsm, db, body, shape, targets, dofs, settings, poses, drapes, surface)
     out.pop("models")
     out["labels"] = labels
     return out
