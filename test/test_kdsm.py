@@ -499,3 +499,15 @@ def test_body_surface_offsets_are_exact_coordinates_and_ignore_a_rigid_motion(bo
     assert np.allclose(np.einsum("vij,vkj->vik", posed_frames, posed_frames), np.eye(3), atol=1e-12)
     torso = point_groups[:, 0] & (point_groups.sum(axis=1) == 1)
     assert np.abs(posed_origin[torso] - origin[torso]).max() < 0.02  # the arm moved, the torso's anchors did not
+
+
+def test_held_out_folds_split_whole_clips_or_random_frames():
+    from agentdress_ros.kdsm.model import held_out_folds
+
+    groups = np.array(["a", "a", "b", "b", "b", "c", "d", "d"])
+    for split in ("clips", "frames"):
+        folds = held_out_folds(groups, 3, split)
+        assert sorted(np.concatenate(folds).tolist()) == list(range(len(groups)))  # every row held out once
+    clip_sets = [set(groups[f]) for f in held_out_folds(groups, 3, "clips")]
+    assert all(not a & b for i, a in enumerate(clip_sets) for b in clip_sets[i + 1:])  # no clip in two folds
+    assert [len(f) for f in held_out_folds(groups, 3, "frames")] == [3, 3, 2]

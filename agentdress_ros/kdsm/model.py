@@ -218,11 +218,21 @@ def _projected(regressor, truth):
     return ((centred @ basis.T) @ basis + mean).reshape(truth.shape)
 
 
+def held_out_folds(groups, folds: int, split: str = "clips", seed: int = 0) -> list[np.ndarray]:
+    """Row indices (of groups (F,) clip names) of each fold's held-out set: whole clips (build.regressor.clip_folds,
+    our default: a test pose's clip is never seen) or, with split="frames", frames dealt at random (the paper's
+    setting: neighbouring frames of the same clip sit in training)."""
+    if split == "frames":
+        order = np.random.default_rng(seed).permutation(len(groups))
+        return [np.sort(order[i::folds]) for i in range(folds)]
+    return [np.flatnonzero(np.isin(groups, held)) for held in clip_folds(np.unique(groups), folds)]
+
+
 def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSettings, folds: int = 3,
-            surface: SurfacePoser | None = None) -> dict:
-    """The paper's comparison on held-out clips: per fold (whole clips, build.regressor.clip_folds) both models are
-    trained on the other clips' frames (plus the database's drapes, settings.examples times) with the same network
-    and scored on the held-out clips' frames as posed world positions (mean vertex distance, cm). Also: each target
+            surface: SurfacePoser | None = None, split: str = "clips") -> dict:
+    """The paper's comparison on held-out data: per fold (whole clips, or random frames: held_out_folds) the models
+    are trained on the other folds' frames (plus the database's drapes, settings.examples times) with the same network
+    and scored on the held-out frames as posed world positions (mean vertex distance, cm). Also: each target
     through its own map (the KDSM's inverse embedding error; the skinned offsets are exact), each target projected on
     its model's PCA, no pose dependence (the rest garment skinned; the fixed embedding, d = 0). With `surface`, the
     paper's own baseline as well: the same regressor on offsets from the skinned body surface (kdsm.surface)."""
@@ -231,7 +241,6 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
     rest = np.asarray(db.rest, dtype=np.float64)
     skin_i, skin_w = db.skin_indices, db.skin_weights
     pack_rows = np.flatnonzero(targets.groups != "examples")
-    clips = np.unique(targets.groups[pack_rows])
     names = ("kdsm", "offsets", "kdsm_targets", "kdsm_pca", "offsets_pca", "rest_skinned", "fixed_embedding")
     if surface is not None:
         names += ("surface", "surface_targets", "surface_pca")
@@ -240,9 +249,9 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
     errors = {n: [] for n in names}
     outside = {"kdsm": 0, "kdsm_targets": 0}
     fold_rows, seconds = [], {"fit_kdsm": 0.0, "fit_offsets": 0.0, "fit_surface": 0.0}
-    for held in clip_folds(clips, folds):
-        test = pack_rows[np.isin(targets.groups[pack_rows], held)]
-        train = pack_rows[~np.isin(targets.groups[pack_rows], held)]
+    for held in held_out_folds(targets.groups[pack_rows], folds, split):
+        test = pack_rows[held]
+        train = np.delete(pack_rows, held)
         t = targets.subset(test)
         started = time.perf_counter()
         reg_d = fit_displacements(targets, train, dofs, settings)
@@ -274,7 +283,7 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
             for name, offsets in (("surface", predict(reg_s, t.poses)), ("surface_targets", surface_x[test]),
                                   ("surface_pca", _projected(reg_s, surface_x[test]))):
                 errors[name].append(_errors(from_surface(offsets, origin[test], frames[test]), t.drapes))
-        fold_rows.append({"clips": list(held), "frames": int(len(test)),
+        fold_rows.append({"clips": sorted(set(targets.groups[test])), "frames": int(len(test)),
                           **{f"{n}_cm": float(errors[n][-1].mean() * 100) for n in names
                              if n in ("kdsm", "offsets", "surface")}})
     total = sum(len(e) for e in errors["kdsm"])
@@ -384,7 +393,9 @@ def main(argv=None) -> int:
                         help="Jacobi iterations of skin-weight diffusion in the air away from the body")
     parser.add_argument("--targets", default=None, help=".npz cache of the inverse-embedded frames (and the KDSM "
                         "beside it, <name>_mesh.npz): reused when made from the same data and settings")
-    parser.add_argument("--folds", type=int, default=3, help="clip folds of the comparison")
+    parser.add_argument("--folds", type=int, default=3, help="folds of the comparison")
+    parser.add_argument("--split", choices=("clips", "frames"), default="clips", help="hold out whole clips (a "
+                        "test pose's clip never seen) or frames at random (the paper's setting)")
     parser.add_argument("--compare", action="store_true", help="the comparison with rest-frame offsets (held-out "
                         "clips of the pack; with --beta0-pack also the evaluation's held-out poses at beta0)")
     parser.add_argument("--beta0-pack", default=None, help="packed drapes of the held-out poses at beta0 "
@@ -435,7 +446,8 @@ def main(argv=None) -> int:
     report["bytes"] = {"database": Path(args.database).stat().st_size, "out": Path(args.out).stat().st_size}
     if args.compare:
         surface = SurfacePoser(db, body, shape)
-        report["clip_folds"] = compare(kdsm, db, targets, dofs, reg_settings, args.folds, surface)
+        report["clip_folds" if args.split == "clips" else "frame_folds"] = compare(
+            kdsm, db, targets, dofs, reg_settings, args.folds, surface, args.split)
         if args.beta0_pack:
             report["test_set_beta0"] = beta0_comparison(kdsm, db, body, shape, targets, dofs, reg_settings,
                                                         args.beta0_pack, args.beta0_test_set, surface)
