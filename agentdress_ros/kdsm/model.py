@@ -30,7 +30,8 @@ from ..build.regressor import (RegressorSettings, TrainingData, add_network_argu
                                 network_settings, pack_data, pose_dofs, predict)
 from .embedding import KdsmPoser
 from .mesh import KDSM, KDSMSettings, build_kdsm
-from .training import GarmentFrames, drape_clearance, pack_frames, spread_frames, training_targets
+from .training import (GarmentFrames, TargetSettings, drape_clearance, pack_frames, spread_frames,
+                       training_targets)
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,7 @@ class KdsmModelSettings:
     margin: float = 0.02  # m: shell thickness = the pack's farthest drape vertex from the posed body + margin
     smoothing: int = 0  # KDSMSettings.smoothing: weight diffusion in the air away from the body
     clearance_frames: int = 0  # frames measured for the clearance (0: every frame of the pack)
+    guess: str = "surface"  # training.TargetSettings.guess: the hybrid's guess among candidate parents
     regressor: RegressorSettings = field(default_factory=RegressorSettings)  # PCA + MLP, as the `regressor`
 
 
@@ -99,7 +101,7 @@ class KdsmTargets:
 
 
 def kdsm_targets(kdsm: KDSM, db, body, shape, pack, count: int, max_offset: float | None = 0.5,
-                 examples: bool = True, progress: bool = False) -> KdsmTargets:
+                 examples: bool = True, progress: bool = False, guess: str = "surface") -> KdsmTargets:
     """Inverse-embed `count` pack frames spread over its clips (left out: frames the `regressor` leaves out, whose
     garment strays more than max_offset from its skinned place) and, with `examples`, the database's beta0 drapes."""
     from ..engine.pose_models import canonical_poses
@@ -114,7 +116,7 @@ def kdsm_targets(kdsm: KDSM, db, body, shape, pack, count: int, max_offset: floa
                       canonical_poses(db.example_poses)))
     out = []
     for data, groups, poses in parts:
-        d, status = training_targets(kdsm, body, shape, data, progress=progress)
+        d, status = training_targets(kdsm, body, shape, data, TargetSettings(guess=guess), progress=progress)
         out.append(KdsmTargets(poses, groups, data.frames, data.transforms, data.drapes, d, status, data.unposed))
     return KdsmTargets(**{k: np.concatenate([getattr(t, k) for t in out]) for k in out[0].__dict__})
 
@@ -369,7 +371,8 @@ def targets_key(db_path, pack_path, settings: KdsmModelSettings, examples: bool 
                 max_offset: float | None = 0.5) -> dict:
     return {"database": str(db_path), "pack": str(pack_path), "frames": settings.frames, "spacing": settings.spacing,
             "margin": settings.margin, "examples": examples, "max_offset": max_offset,
-            **({"smoothing": settings.smoothing} if settings.smoothing else {})}
+            **({"smoothing": settings.smoothing} if settings.smoothing else {}),
+            **({"guess": settings.guess} if settings.guess != "surface" else {})}
 
 
 def main(argv=None) -> int:
@@ -391,6 +394,9 @@ def main(argv=None) -> int:
     parser.add_argument("--margin", type=float, default=defaults.margin)
     parser.add_argument("--smoothing", type=int, default=defaults.smoothing,
                         help="Jacobi iterations of skin-weight diffusion in the air away from the body")
+    parser.add_argument("--guess", choices=("surface", "unposed"), default=defaults.guess, help="the hybrid "
+                        "inverse embedding's guess among candidate parents: Method 2's offset from the body surface "
+                        "(the paper's) or the drape unposed with the garment's own skinning")
     parser.add_argument("--targets", default=None, help=".npz cache of the inverse-embedded frames (and the KDSM "
                         "beside it, <name>_mesh.npz): reused when made from the same data and settings")
     parser.add_argument("--folds", type=int, default=3, help="folds of the comparison")
@@ -407,7 +413,7 @@ def main(argv=None) -> int:
     add_network_arguments(parser, defaults.regressor)
     args = parser.parse_args(argv)
     settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin,
-                       smoothing=args.smoothing, regressor=network_settings(args))
+                       smoothing=args.smoothing, guess=args.guess, regressor=network_settings(args))
     reg_settings = settings.regressor
 
     started = time.perf_counter()
@@ -423,7 +429,7 @@ def main(argv=None) -> int:
     else:
         kdsm = database_kdsm(db, body, shape, pack, settings)
         targets = kdsm_targets(kdsm, db, body, shape, pack, settings.frames, settings.regressor.max_offset,
-                               progress=True)
+                               progress=True, guess=settings.guess)
         if args.targets is not None:
             save_kdsm(mesh_path, kdsm)
             save_targets(args.targets, targets, key)

@@ -34,6 +34,9 @@ class TargetSettings:
     threshold: float = 0.01  # m: the paper's agreement threshold with Method 2 (and its morphs)
     relaxed: tuple = (0.02, 0.04)  # m: later thresholds of the hybrid targets (inverse.hybrid_material)
     region_minimum: float = 0.05  # Method 2 searches the body regions carrying this much of a vertex's weight
+    # the hybrid's guess: "surface" (Method 2, the paper's) or "unposed" (the drape unposed with the garment's own
+    # skinning: the rest-frame offsets, smooth in the pose, pick the parent among several)
+    guess: str = "surface"
 
 
 @dataclass(frozen=True)
@@ -119,8 +122,8 @@ class TargetBuilder:
         fallback = data.unposed[n]
         method1, status1 = method1_material(candidates, fallback, self.rng)
         paper, status_p, _ = hybrid_material(candidates, guess, fallback, self.laplacian, s.threshold)
-        hybrid, status_h, rounds = hybrid_material(candidates, guess, fallback, self.laplacian, s.threshold,
-                                                   tuple(s.relaxed))
+        hybrid, status_h, rounds = hybrid_material(candidates, fallback if s.guess == "unposed" else guess,
+                                                   fallback, self.laplacian, s.threshold, tuple(s.relaxed))
         v = len(drape)
         return FrameTargets(
             material={"fixed": data.rest.copy(), "method1": method1, "method2": guess, "hybrid_paper": paper,
