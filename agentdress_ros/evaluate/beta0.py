@@ -48,20 +48,22 @@ def main(argv=None) -> int:
     from ..body import AnnyBody
     from ..engine import read_database
     from ..garment import make_garment
-    from .testset import HeldOutConfig, default_clip_paths
+    from .testset import HeldOutConfig, default_clip_paths, held_out_v2
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--database", default="data/tshirt_default.h5")
     parser.add_argument("--pack", required=True)
     parser.add_argument("--cache", default=None)
     parser.add_argument("--workers", type=int, default=0)
+    parser.add_argument("--test-set", choices=("v1", "v2"), default="v1", help="whose held-out poses to drape")
     args = parser.parse_args(argv)
     db = read_database(args.database)
     body = AnnyBody()
     garment = make_garment(db.garment, body, db.n_vertices)
-    cache = args.cache or Path("out/eval-cache") / Path(args.database).stem
-    drapes, _, labels = held_out_beta0(db, body, garment, HeldOutConfig(clips=default_clip_paths()), cache,
-                                       workers=args.workers, pack=args.pack)
+    v2 = args.test_set == "v2"
+    cache = args.cache or Path("out/eval-cache-v2" if v2 else "out/eval-cache") / Path(args.database).stem
+    config = held_out_v2() if v2 else HeldOutConfig(clips=default_clip_paths())
+    drapes, _, labels = held_out_beta0(db, body, garment, config, cache, workers=args.workers, pack=args.pack)
     print(json.dumps({"pack": args.pack, "drapes": len(drapes), "poses": labels}))
     return 0
 
