@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     from ..body import AnnyBody
     from ..engine import read_database
     from ..garment import make_garment
-    from .testset import HeldOutConfig, default_clip_paths, held_out_v2
+    from .testset import HeldOutConfig, default_cache, default_clip_paths, held_out_v2
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--database", default="data/tshirt_default.h5")
@@ -60,9 +60,8 @@ def main(argv=None) -> int:
     db = read_database(args.database)
     body = AnnyBody()
     garment = make_garment(db.garment, body, db.n_vertices)
-    v2 = args.test_set == "v2"
-    cache = args.cache or Path("out/eval-cache-v2" if v2 else "out/eval-cache") / Path(args.database).stem
-    config = held_out_v2() if v2 else HeldOutConfig(clips=default_clip_paths())
+    cache = args.cache or default_cache(args.database, args.test_set)
+    config = held_out_v2() if args.test_set == "v2" else HeldOutConfig(clips=default_clip_paths())
     drapes, _, labels = held_out_beta0(db, body, garment, config, cache, workers=args.workers, pack=args.pack)
     print(json.dumps({"pack": args.pack, "drapes": len(drapes), "poses": labels}))
     return 0

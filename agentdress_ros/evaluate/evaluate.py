@@ -760,11 +760,13 @@ def write_plots(report: dict, out_dir: Path) -> list[Path]:
 def main(argv=None) -> int:
     import argparse
 
+    from .testset import default_cache
+
     parser = argparse.ArgumentParser(prog="agentdress eval", description=__doc__.split("\n")[0])
     parser.add_argument("--database", default="data/tshirt_default.h5")
     parser.add_argument("--out", default="docs/eval", help="folder for report.json, trade.md and the plots")
     parser.add_argument("--cache", default=None, help="ground-truth drapes of the held-out set (default: "
-                        "out/eval-cache/<database file name without .h5>)")
+                        "out/eval-cache/<database file name without .h5>, out/eval-cache-v2/... for --test-set v2)")
     parser.add_argument("--clips", nargs="*", default=None, help="held-out CMU .bvh clips (default: "
                         "../shared/mocap/cmu/{02_01,07_12,05_12,06_14,09_01}.bvh)")
     parser.add_argument("--quick", action="store_true", help="one pose, two shapes, short drapes (a smoke test)")
@@ -783,7 +785,7 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     pack = None if args.ground_truth == "none" else (args.ground_truth or Path(args.out) / "ground_truth_drapes.npz")
-    cache = args.cache or Path("out/eval-cache") / Path(args.database).stem
+    cache = args.cache or default_cache(args.database, args.test_set)
     beta0_pack = None if pack is None else Path(pack).with_name("ground_truth_beta0.npz")
     report = evaluate(args.database, args.out, cache, clips=args.clips, quick=args.quick,
                       workers=args.workers, progress=not args.quiet,

@@ -94,6 +94,8 @@ def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int
 def main(argv=None) -> int:
     import argparse
 
+    from .testset import default_cache
+
     parser = argparse.ArgumentParser(prog="agentdress floor", description=__doc__.split("\n")[0])
     parser.add_argument("--database", default="data/tshirt_default.h5")
     parser.add_argument("--cache", default=None, help="the v2 held-out set's cache (default: "
@@ -107,7 +109,7 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=0)
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
-    cache = args.cache or Path("out/eval-cache-v2") / Path(args.database).stem
+    cache = args.cache or default_cache(args.database, "v2")
     pack = args.ground_truth or Path(args.out) / "ground_truth_drapes.npz"
     report = ground_truth_spread(args.database, cache, pack, args.out, json.loads(args.alternative), args.every,
                                  args.workers, progress=not args.quiet)

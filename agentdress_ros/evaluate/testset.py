@@ -25,6 +25,12 @@ def default_clip_paths(root: Path | None = None) -> list[Path]:
     return [root / f"{name}.bvh" for name in HELD_OUT_CLIPS]
 
 
+def default_cache(database, test_set: str = "v1") -> Path:
+    """The folder of a held-out set's drapes for a database file when none is given: one per set, since a set's
+    cache refuses another set's poses."""
+    return Path("out/eval-cache-v2" if test_set == "v2" else "out/eval-cache") / Path(database).stem
+
+
 def held_out_v2(root: Path | None = None) -> "HeldOutConfig":
     """The ground truth v2 test set: 4 poses from each of the 10 test clips of ../shared/mocap/README.md x 3 shapes
     (2 inside the training range, 1 just outside), draped with the animated collider (the body carried from rest

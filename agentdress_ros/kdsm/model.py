@@ -13,8 +13,9 @@ database (`--out`, group pose_model/kdsm, engine.database.KdsmModel); the engine
 
 `--compare` runs the paper's comparison on the same frames, the same clip folds and the same network: (a) d learned
 in the KDSM against (b) the garment's rest-frame offsets learned from its own skinning (what the `regressor` learns)
-and (c) offsets from the skinned body surface (the paper's baseline, Jin et al.; kdsm.surface), all scored as posed world positions against the held-out clips' drapes (and, when given, `--beta0-pack`: the
-evaluation's held-out poses draped at beta0, evaluate.beta0).
+and (c) offsets from the skinned body surface (the paper's baseline, Jin et al.; kdsm.surface), all scored as posed
+world positions against the held-out clips' drapes (and, when given, `--beta0-pack`: the evaluation's held-out poses
+draped at beta0, evaluate.beta0).
 """
 from __future__ import annotations
 
@@ -93,12 +94,6 @@ class KdsmTargets:
     def subset(self, rows) -> "KdsmTargets":
         return KdsmTargets(**{k: v[rows] for k, v in self.__dict__.items()})
 
-    def kdsm_data(self) -> TrainingData:
-        return TrainingData(self.poses, self.displacements, self.groups)
-
-    def offset_data(self) -> TrainingData:
-        return TrainingData(self.poses, self.unposed, self.groups)
-
 
 def kdsm_targets(kdsm: KDSM, db, body, shape, pack, count: int, max_offset: float | None = 0.5,
                  examples: bool = True, progress: bool = False, guess: str = "surface") -> KdsmTargets:
@@ -141,17 +136,22 @@ def training_rows(targets: KdsmTargets, rows, copies: int) -> np.ndarray:
     return np.concatenate([np.asarray(rows, dtype=np.int64)] + [examples] * copies)
 
 
+def fit_on_rows(targets: KdsmTargets, values, rows, dofs, settings: RegressorSettings):
+    """The regressor (engine.database.Regressor, build.regressor.fit) of per-frame values (F, V, 3) of `targets`
+    - d, the rest-frame garment or the body-surface offsets - trained on `rows` (and the database's drapes
+    settings.examples times): every model of the comparison learns through this one."""
+    train = training_rows(targets, rows, settings.examples)
+    return fit(TrainingData(targets.poses[train], values[train], targets.groups[train]), dofs, settings)[0]
+
+
 def fit_displacements(targets: KdsmTargets, rows, dofs, settings: RegressorSettings):
-    """The regressor (engine.database.Regressor) of d(theta) trained on `rows` of targets (and the drapes
-    settings.examples times): build.regressor.fit on the plastic displacements instead of rest-frame positions."""
-    train = targets.subset(training_rows(targets, rows, settings.examples))
-    return fit(train.kdsm_data(), dofs, settings)[0]
+    """The `kdsm` pose model's regressor: d(theta) on `rows` of targets (fit_on_rows)."""
+    return fit_on_rows(targets, targets.displacements, rows, dofs, settings)
 
 
 def fit_offsets(targets: KdsmTargets, rows, dofs, settings: RegressorSettings):
     """The same regressor trained on the rest-frame garment of the same rows (what the `regressor` learns)."""
-    train = targets.subset(training_rows(targets, rows, settings.examples))
-    return fit(train.offset_data(), dofs, settings)[0]
+    return fit_on_rows(targets, targets.unposed, rows, dofs, settings)
 
 
 class SurfacePoser:
@@ -166,6 +166,7 @@ class SurfacePoser:
         face_groups, point_groups = region_groups(body, db.skin_indices, db.skin_weights)
         self.anchors = anchor_garment(np.asarray(db.rest, dtype=np.float64), shape.vertices, self.faces,
                                       face_groups, point_groups)
+        self._targets = None  # (targets, origin, frames, offsets) of the last targets seen
 
     def frames(self, transforms):
         """Surface points (F, V, 3) and frames (F, V, 3, 3) of the anchors at bone transforms (F, B, 3, 4)."""
@@ -175,13 +176,15 @@ class SurfacePoser:
                                 self.faces) for t in transforms]
         return np.stack([p[0] for p in parts]), np.stack([p[1] for p in parts])
 
+    def of_targets(self, targets: KdsmTargets):
+        """(origin, frames, offsets (F, V, 3) of the drapes) at every frame of `targets`: computed once for the
+        comparison and the test set, which both train on the same targets."""
+        from .surface import to_surface
 
-
-def fit_surface_offsets(targets: KdsmTargets, offsets, rows, dofs, settings: RegressorSettings):
-    """The same regressor trained on the body-surface offsets (F, V, 3) of the same rows (the paper's baseline)."""
-    train = training_rows(targets, rows, settings.examples)
-    data = TrainingData(targets.poses[train], offsets[train], targets.groups[train])
-    return fit(data, dofs, settings)[0]
+        if self._targets is None or self._targets[0] is not targets:
+            origin, frames = self.frames(targets.transforms)
+            self._targets = (targets, origin, frames, to_surface(targets.drapes, origin, frames))
+        return self._targets[1:]
 
 
 def posed_kdsm(kdsm: KDSM, rest, skin_indices, skin_weights, transforms, displacements):
@@ -238,7 +241,7 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
     through its own map (the KDSM's inverse embedding error; the skinned offsets are exact), each target projected on
     its model's PCA, no pose dependence (the rest garment skinned; the fixed embedding, d = 0). With `surface`, the
     paper's own baseline as well: the same regressor on offsets from the skinned body surface (kdsm.surface)."""
-    from .surface import from_surface, to_surface
+    from .surface import from_surface
 
     rest = np.asarray(db.rest, dtype=np.float64)
     skin_i, skin_w = db.skin_indices, db.skin_weights
@@ -246,8 +249,7 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
     names = ("kdsm", "offsets", "kdsm_targets", "kdsm_pca", "offsets_pca", "rest_skinned", "fixed_embedding")
     if surface is not None:
         names += ("surface", "surface_targets", "surface_pca")
-        origin, frames = surface.frames(targets.transforms)
-        surface_x = to_surface(targets.drapes, origin, frames)
+        origin, frames, surface_x = surface.of_targets(targets)
     errors = {n: [] for n in names}
     outside = {"kdsm": 0, "kdsm_targets": 0}
     fold_rows, seconds = [], {"fit_kdsm": 0.0, "fit_offsets": 0.0, "fit_surface": 0.0}
@@ -280,7 +282,7 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
         errors["fixed_embedding"].append(_errors(posed, t.drapes))
         if surface is not None:
             started = time.perf_counter()
-            reg_s = fit_surface_offsets(targets, surface_x, train, dofs, settings)
+            reg_s = fit_on_rows(targets, surface_x, train, dofs, settings)
             seconds["fit_surface"] += time.perf_counter() - started
             for name, offsets in (("surface", predict(reg_s, t.poses)), ("surface_targets", surface_x[test]),
                                   ("surface_pca", _projected(reg_s, surface_x[test]))):
@@ -306,7 +308,7 @@ def test_set_errors(kdsm: KDSM, db, body, shape, targets: KdsmTargets, dofs, set
     drapes) and scored on held-out poses (P, B, 3) draped at beta0 (P, V, 3) (evaluate.beta0): mean vertex distance
     (cm), all and per pose."""
     from ..engine.pose_models import canonical_poses
-    from .surface import from_surface, to_surface
+    from .surface import from_surface
 
     rows = np.flatnonzero(targets.groups != "examples")
     poses = canonical_poses(poses)
@@ -326,8 +328,7 @@ def test_set_errors(kdsm: KDSM, db, body, shape, targets: KdsmTargets, dofs, set
                 "rest_skinned": _errors(rest_skinned, drapes), "fixed_embedding": _errors(fixed, drapes)}
     models = (reg_d, reg_x)
     if surface is not None:
-        origin, frames = surface.frames(targets.transforms)
-        reg_s = fit_surface_offsets(targets, to_surface(targets.drapes, origin, frames), rows, dofs, settings)
+        reg_s = fit_on_rows(targets, surface.of_targets(targets)[2], rows, dofs, settings)
         origin, frames = surface.frames(transforms)
         rows_out["surface"] = _errors(from_surface(predict(reg_s, poses), origin, frames), drapes)
         models += (reg_s,)

@@ -119,11 +119,12 @@ class TargetBuilder:
         candidates = candidate_parents(self.kdsm, self.kdsm.posed_vertices(transforms), drape, s.eps)
         guess = surface_offset_guess(self.body.posed_vertices(self.shape, transforms), self.shape.vertices,
                                      self.body.body_faces, drape, self.face_groups, self.point_groups)
-        fallback = data.unposed[n]
-        method1, status1 = method1_material(candidates, fallback, self.rng)
-        paper, status_p, _ = hybrid_material(candidates, guess, fallback, self.laplacian, s.threshold)
-        hybrid, status_h, rounds = hybrid_material(candidates, fallback if s.guess == "unposed" else guess,
-                                                   fallback, self.laplacian, s.threshold, tuple(s.relaxed))
+        unposed = data.unposed[n]  # also the fallback of points in no tet
+        method1, status1 = method1_material(candidates, unposed, self.rng)
+        paper, status_p, _ = hybrid_material(candidates, guess, unposed, self.laplacian, s.threshold)
+        hybrid_guess = unposed if s.guess == "unposed" else guess
+        hybrid, status_h, rounds = hybrid_material(candidates, hybrid_guess, unposed, self.laplacian, s.threshold,
+                                                   tuple(s.relaxed))
         v = len(drape)
         return FrameTargets(
             material={"fixed": data.rest.copy(), "method1": method1, "method2": guess, "hybrid_paper": paper,
