@@ -42,6 +42,8 @@ PASSTHROUGH = (
      "into a database"),
     ("santesteban", ".build.santesteban", "main", "train Santesteban et al.'s garment model (model=santesteban) into "
      "a database"),
+    ("shape-residual", ".build.shape_residual", "main", "train the shape residual (engine shape_residual) from drapes "
+     "at random shapes into a database"),
 )
 
 

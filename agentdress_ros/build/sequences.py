@@ -191,7 +191,8 @@ def write_pack(out, garment_name: str, garment_vertices: int, beta, rest, faces,
     """Write a pack (the module docstring's format) atomically: offsets (F, 3V) rest-frame offsets as float16 PCA
     coefficients of `components` components (each scaled to its range) plus the float16 basis; `fields` the per-frame
     arrays (rotvecs (F, B, 3), root_translation, root_velocity (F, 3), cloth_speed, body_speed (F,), clip (F,)
-    indices into `names`, frame (F,)); complete (C,) whether each clip is whole. Returns (rest-frame error of the
+    indices into `names`, frame (F,); optionally betas (F, 6), each frame's body shape, where they differ);
+    complete (C,) whether each clip is whole. Returns (rest-frame error of the
     stored offsets (F, V) metres, explained variance, components kept)."""
     out = Path(out)
     matrix = np.asarray(offsets, dtype=np.float64)
@@ -219,7 +220,8 @@ def write_pack(out, garment_name: str, garment_vertices: int, beta, rest, faces,
             mean=mean.astype(np.float32), basis=basis16, scale=scale.astype(np.float32),
             coefficients=coefficients16, clip=np.asarray(fields["clip"], dtype=np.int16),
             frame=np.asarray(fields["frame"], dtype=np.int32), clips=np.array(names),
-            clip_complete=np.array(complete, dtype=bool), **per_frame)
+            clip_complete=np.array(complete, dtype=bool), **per_frame,
+            **({"betas": np.asarray(fields["betas"], dtype=np.float64)} if "betas" in fields else {}))
     out.parent.mkdir(parents=True, exist_ok=True)
     partial.replace(out)
     return error, float((singular[:k] ** 2).sum() / (singular ** 2).sum()), k

@@ -33,6 +33,8 @@ import numpy as np
 
 #: Settling from a dynamic frame is a warm start: near equilibrium, so the warm drapes' extra drag applies.
 SETTLE_DRAPE = {"velocity_retention": 0.75, "warm_ramp_frames": 1}
+#: Shaped drapes reach this far beyond the training range (the held-out set's outside shapes lie 0.05 beyond it).
+SHAPED_MARGIN = 0.05
 
 
 def settle_jobs(pack: dict, db, body, frames, drape: dict | None = None) -> tuple:
@@ -70,6 +72,36 @@ def rest_start_jobs(pack: dict, db, frames, drape: dict | None = None) -> list:
                      db.n_vertices, settings) for f in np.asarray(frames, dtype=np.int64)]
 
 
+def shaped_jobs(db, rest_jobs: list, seed: int = 0, margin: float = SHAPED_MARGIN, drape: dict | None = None) -> list:
+    """One DrapeJob per drape from rest in `rest_jobs`: the same pose at a random body shape (build.shapes.
+    uniform_shapes over the database's training range widened by `margin`, seeded), warm-started from that drape
+    the way the held-out set's other shapes start from its first (the held-out set's warm settings, plus the
+    DrapeSettings overrides `drape`)."""
+    from ..evaluate.testset import HeldOutConfig
+    from .jobs import DrapeJob
+    from .shapes import uniform_shapes
+
+    betas = uniform_shapes(db.beta0, db.beta_range, len(rest_jobs), np.random.default_rng(seed), margin)
+    warm = {**dict(db.provenance.get("config", {}).get("drape", {})), **HeldOutConfig().warm_drape, **(drape or {})}
+    return [DrapeJob("shaped", job.index, 1, job.pose, beta, db.garment, db.n_vertices, warm, warm_key=job.key,
+                     warm_pose=job.pose, warm_beta=job.beta) for job, beta in zip(rest_jobs, betas)]
+
+
+def shaped_offsets(body, db, jobs, drapes) -> list:
+    """Rows (3V,) of each drape (V, 3) unposed with its job's shape's bones, minus the garment fitted to that
+    shape at rest (`Garment.rest_vertices`): what a shaped pack stores."""
+    from ..garment import make_garment
+    from .sequences import rest_frame_offsets
+
+    garment = make_garment(db.garment, body, db.n_vertices)
+    rows = []
+    for job, drape in zip(jobs, drapes):
+        shape = body.shape(job.beta)
+        rows += rest_frame_offsets(body, shape, db.skin_indices, db.skin_weights, garment.rest_vertices(body, shape),
+                                   [drape], [job.pose], np.zeros((1, 3)))
+    return rows
+
+
 def spread_order(count: int) -> np.ndarray:
     """(count,) a permutation of range(count) whose every prefix is spread evenly over the range: the order of the
     base-2 radical inverse (0, 1/2, 1/4, 3/4, ...) of the positions."""
@@ -80,11 +112,12 @@ def spread_order(count: int) -> np.ndarray:
 
 def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress: bool = True,
                 components: int = 64, drape: dict | None = None, partial: bool = False, work=None,
-                start: str = "dynamic") -> dict:
+                start: str = "dynamic", seed: int = 0) -> dict:
     """Settle `count` frames of the pack (see the module docstring), resumably; write the pack `out`; a report.
     work: the folder of finished drapes (default `<out>.work`); partial: drape nothing, pack the drapes finished so
     far (while another run of the same command goes on); start: "dynamic" (from the frame's own cloth) or "rest"
-    (carried from the rest pose, as the anchors are)."""
+    (carried from the rest pose, as the anchors are) or "shaped" (each finished drape from rest in `work` again at a
+    random shape drawn with `seed`, warm-started from it)."""
     from ..body import AnnyBody
     from ..engine.database import read_database
     from ..kdsm.training import spread_frames
@@ -104,13 +137,16 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
                          f"vertices, and settling from them needs that garment's database, not {db_path} "
                          f"({db.garment}, {db.n_vertices} vertices); --start rest drapes any garment at the pack's "
                          "poses")
-    if start == "rest":
+    store = DrapeStore(Path(work if work is not None else str(out) + ".work") / "drapes")
+    if start in ("rest", "shaped"):
         jobs, starts = rest_start_jobs(pack, db, frames, drape), {}
+        if start == "shaped":  # the other shape of each pose whose drape from rest is finished (every pose
+            # draws its shape, finished or not, so that a frame's shape never depends on how far the rest run got)
+            jobs = [job for job in shaped_jobs(db, jobs, seed, drape=drape) if store.has(job.warm_key)]
     elif start == "dynamic":
         jobs, starts = settle_jobs(pack, db, body, frames, drape)
     else:
-        raise ValueError(f"start must be 'dynamic' or 'rest', got {start!r}")
-    store = DrapeStore(Path(work if work is not None else str(out) + ".work") / "drapes")
+        raise ValueError(f"start must be 'dynamic', 'rest' or 'shaped', got {start!r}")
     for key, vertices in starts.items():
         if not store.has(key):
             store.save({"key": key, "vertices": vertices, "stats": {}})
@@ -120,15 +156,20 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
         run_jobs(jobs, store, workers=workers, progress=progress)
     # the database's garment, which need not be the pack's with --start rest (the pack gives only the poses)
     rest = np.asarray(db.rest, dtype=np.float64)
-    offsets = rest_frame_offsets(body, body.shape(db.beta0), db.skin_indices, db.skin_weights, rest,
-                                 [store.load(job.key) for job in jobs], [job.pose for job in jobs],
-                                 np.zeros((len(jobs), 3)))
+    if start == "shaped":  # each drape unposed with its own shape's bones, from the garment fitted to that shape
+        offsets = shaped_offsets(body, db, jobs, [store.load(job.key) for job in jobs])
+    else:
+        offsets = rest_frame_offsets(body, body.shape(db.beta0), db.skin_indices, db.skin_weights, rest,
+                                     [store.load(job.key) for job in jobs], [job.pose for job in jobs],
+                                     np.zeros((len(jobs), 3)))
     stats = [store.stats(job.key) for job in jobs]
     n = len(jobs)
     done = np.array([job.index for job in jobs], dtype=np.int64)  # the pack frames settled (all but with partial)
     fields = {"rotvecs": pack["rotvecs"][done], "root_translation": np.zeros((n, 3)),
               "root_velocity": np.zeros((n, 3)), "cloth_speed": np.zeros(n), "body_speed": np.zeros(n),
               "clip": pack["clip"][done], "frame": pack["frame"][done]}
+    if start == "shaped":
+        fields["betas"] = np.array([job.beta for job in jobs])
     names = [str(c) for c in pack["clips"]]
     error, explained, k = write_pack(out, db.garment, db.n_vertices, np.asarray(db.beta0), rest,
                                      np.asarray(db.faces), offsets, fields, names, [True] * len(names),
@@ -157,16 +198,18 @@ def main(argv=None) -> int:
     parser.add_argument("--work", default=None, help="folder of the finished drapes (default: <out>.work)")
     parser.add_argument("--partial", action="store_true", help="drape nothing: pack the drapes finished so far "
                         "(with --work naming a running command's folder and another --out)")
-    parser.add_argument("--start", choices=["dynamic", "rest"], default="dynamic",
+    parser.add_argument("--start", choices=["dynamic", "rest", "shaped"], default="dynamic",
                         help="dynamic: settle from the frame's own cloth; rest: carry the garment from the rest pose "
-                        "into the frame's pose, as the anchors and the held-out set are draped")
+                        "into the frame's pose, as the anchors and the held-out set are draped; shaped: each drape "
+                        "from rest finished in --work again at a random body shape, warm-started from it")
+    parser.add_argument("--seed", type=int, default=0, help="--start shaped: the seed of the random shapes")
     parser.add_argument("--drape", type=json.loads, default=None, help="JSON DrapeSettings overrides, e.g. "
                         "'{\"ramp_frames\": 30}' to drape from rest with a database built with the static collider")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     report = settle_pack(args.database, args.pack, args.out, args.frames, args.workers, not args.quiet,
                          args.components, drape=args.drape, partial=args.partial, work=args.work,
-                         start=args.start)
+                         start=args.start, seed=args.seed)
     json.dump(report, sys.stdout, indent=1)
     print()
     return 0

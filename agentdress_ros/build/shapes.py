@@ -52,3 +52,16 @@ def shape_scale() -> np.ndarray:
     for name in TRAINING_PHENOTYPES:
         scale[PHENOTYPE_NAMES.index(name)] = abs(LEVELS[name][2])
     return scale
+
+
+def uniform_shapes(beta0, beta_range, count: int, rng, margin: float = 0.0) -> np.ndarray:
+    """(count, 6) shapes whose trained phenotypes (those the range (6, 2) spans) are drawn uniformly from the range
+    widened by `margin` on both sides (clipped to Anny's [0, 1]); the others stay at beta0. One draw per shape, in
+    order, so a seeded rng gives the same shapes however many are asked for."""
+    low, high = np.asarray(beta_range, dtype=np.float64).T
+    trained = np.flatnonzero(high - low > 1e-9)
+    low, high = np.clip(low - margin, 0.0, 1.0), np.clip(high + margin, 0.0, 1.0)
+    shapes = np.repeat(np.asarray(beta0, dtype=np.float64)[None], count, axis=0)
+    for shape in shapes:
+        shape[trained] = rng.uniform(low[trained], high[trained])
+    return shapes

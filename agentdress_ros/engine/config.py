@@ -42,6 +42,9 @@ class EngineConfig:
         f(beta0, theta_s) - pose_model(theta_s) to its shape delta, so synthesis stays exact at the anchors (Eq. 4
         with the taylor="augmented" form only; no cost per frame).
     max_root_translation: |root translation| components are clamped to this (metres) so float32 output stays finite.
+    shape_residual: add the database's learned shape residual (shape_model/residual, `agentdress shape-residual`)
+        to the blended shape delta every frame: what synthesis missed at other body shapes along the training
+        clips, from pose and phenotypes (taylor="augmented" with the shape model only; a small MLP per frame).
     """
 
     pose_model: str = "lbs"
@@ -63,10 +66,14 @@ class EngineConfig:
     clamp_to_training_range: bool = True
     max_root_translation: float = 1.0e4
     fold: bool = True
+    shape_residual: bool = False
 
     def __post_init__(self):
         if self.taylor not in TAYLOR_MODES:
             raise ValueError(f"taylor must be one of {TAYLOR_MODES}, got {self.taylor!r}")
+        if self.shape_residual and (not self.shape_model or self.taylor != "augmented"):
+            raise ValueError("shape_residual corrects the shape delta of Eq. 4: it needs shape_model=True and "
+                             "taylor='augmented'")
         if not self.shape_model and self.taylor == "zeroth":
             raise ValueError("taylor='zeroth' is a blend of anchors: it needs shape_model=True")
         if self.dtype not in ("float32", "float64"):

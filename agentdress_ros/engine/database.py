@@ -42,6 +42,7 @@ at run time. A held-out shape that changes four phenotypes at once is reproduced
 | pose_model/kdsm/rest | (V, 3) f32 | u^{m_o}: the rest garment the displacements are learned for (in this file's vertex order) |
 | pose_model/kdsm/regressor/... | as pose_model/regressor | the learned d(theta): PCA of the plastic displacements d, MLP from the pose |
 | pose_model/recurrent/input_weights, .../state_weights, .../bias, .../output_weights, .../output_bias | (I, 3H), (H, 3H), (3H,), (H, G), (G,) f32 | optional recurrent correction of pose_model/regressor (engine.pose_models.RecurrentPoseModel): a GRU over the regressor's standardised inputs (gates z, r, n in that order) whose state adds output_weights h + output_bias to the regressor's standardised outputs; attrs hidden (H), info (JSON) |
+| shape_model/residual/... | as pose_model/regressor, dofs in [0, D + 6) | optional learned correction of synthesis at other body shapes (EngineConfig.shape_residual, build.shape_residual): inputs the D pose dofs followed by the 6 phenotypes, output a rest-frame displacement added to the blended shape delta; info (JSON) names the engine configuration it was trained against |
 | garment_model/santesteban/fit/..., .../wrinkles/... | as pose_model/regressor, dofs in [0, D + 6) | optional garment model of Santesteban et al. 2019 (engine.santesteban): its inputs are the D pose dofs followed by the 6 phenotypes; fit R_G(beta) and wrinkles R_L(beta, theta), both rest-frame displacements of the garment; attrs info (JSON) |
 
 The regressor (Santesteban et al. 2019, Sec. 3-4) is f(beta0, theta) in the rest frame: the garment unposed with
@@ -89,6 +90,7 @@ MAX_LAYERS = 16
 
 KDSM_GROUP = "pose_model/kdsm"
 SANTESTEBAN_GROUP = "garment_model/santesteban"
+SHAPE_RESIDUAL_GROUP = "shape_model/residual"
 RECURRENT_GROUP = "pose_model/recurrent"
 RECURRENT_ARRAYS = ("input_weights", "state_weights", "bias", "output_weights", "output_bias")
 KDSM_ARRAYS = ("origin", "dims", "vertices", "tets", "class_inverse", "lattice_tets", "skin_indices", "skin_weights",
@@ -270,6 +272,7 @@ class Database:
     kdsm_model: "KdsmModel | None" = None
     santesteban: "SantestebanArrays | None" = None
     recurrent: "Recurrent | None" = None
+    shape_residual: "Regressor | None" = None
     shape_basis: str = "absolute"
     binding_triangles: np.ndarray | None = None
     binding_barycentric: np.ndarray | None = None
@@ -369,6 +372,8 @@ def write_database(path, db: Database) -> Path:
             write_santesteban(h5, db.santesteban)
         if db.recurrent is not None:
             write_recurrent(h5, db.recurrent)
+        if db.shape_residual is not None:
+            write_regressor(h5, db.shape_residual, SHAPE_RESIDUAL_GROUP)
     partial.replace(path)
     return path
 
@@ -572,6 +577,7 @@ class _Reader:
         extras["kdsm_model"] = self.kdsm_model()
         extras["santesteban"] = self.santesteban()
         extras["recurrent"] = self.recurrent(extras["regressor"])
+        extras["shape_residual"] = self.with_phenotype_inputs(SHAPE_RESIDUAL_GROUP)
         return Database(**values, **extras)
 
     def recurrent(self, regressor) -> Recurrent | None:
@@ -610,13 +616,18 @@ class _Reader:
         if not isinstance(group, h5py.Group):
             self.fail("is a dataset, not a group")
         info = self.json(SANTESTEBAN_GROUP, "info", "{}", dict)
+        fit = self.with_phenotype_inputs(SANTESTEBAN_GROUP + "/fit", required=True)
+        wrinkles = self.with_phenotype_inputs(SANTESTEBAN_GROUP + "/wrinkles", required=True)
+        return SantestebanArrays(fit=fit, wrinkles=wrinkles, info=info)
+
+    def with_phenotype_inputs(self, group_name: str, required: bool = False) -> Regressor | None:
+        """A regressor group checked like pose_model/regressor, whose inputs are the D pose dofs followed by the 6
+        phenotypes (None when absent and not required)."""
         self.sizes["D"], pose_dofs = (self.sizes["D"][0] + 6, self.sizes["D"][1]), self.sizes["D"]
         try:
-            fit = self.regressor(SANTESTEBAN_GROUP + "/fit", required=True)
-            wrinkles = self.regressor(SANTESTEBAN_GROUP + "/wrinkles", required=True)
+            return self.regressor(group_name, required=required)
         finally:
             self.sizes["D"] = pose_dofs
-        return SantestebanArrays(fit=fit, wrinkles=wrinkles, info=info)
 
     def kdsm_model(self) -> KdsmModel | None:
         """The optional KDSM group (None when absent): the mesh's arrays checked for shapes, index ranges and

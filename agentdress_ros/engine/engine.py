@@ -26,7 +26,7 @@ from .config import TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
 from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, project_out_of_body,
                       region_neighbours, shape_anchors, skin_with_normals, synthesize_vertices, unpose)
-from .pose_models import PoseModelContext, canonical_poses, make_pose_model
+from .pose_models import PoseModelContext, RegressorDecoder, canonical_poses, make_pose_model
 
 N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-zero regions
 
@@ -109,6 +109,7 @@ def select_database(db: Database, config: EngineConfig) -> Database:
             sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, ids],
             regressor=None if db.regressor is None else db.regressor.vertex_rows(ids),
             santesteban=None if db.santesteban is None else db.santesteban.vertex_rows(ids),
+            shape_residual=None if db.shape_residual is None else db.shape_residual.vertex_rows(ids),
             **_binding_rows(db, ids),
         )
     return replace(db, **changes) if changes else db
@@ -178,6 +179,7 @@ def permute_vertices(db: Database, order: np.ndarray) -> Database:
         sequence_drapes=None if db.sequence_drapes is None else db.sequence_drapes[:, order],
         regressor=None if db.regressor is None else db.regressor.vertex_rows(order),
         santesteban=None if db.santesteban is None else db.santesteban.vertex_rows(order),
+        shape_residual=None if db.shape_residual is None else db.shape_residual.vertex_rows(order),
         **_binding_rows(db, order))
 
 
@@ -267,6 +269,12 @@ class Engine:
             block_start=self.block_start, block_regions=self.block_regions, region_w=self.region_w)
         self.pose_model = make_pose_model(config.pose_model, context)
         self._fold = self._anchor_residuals() if config.fold and self.mode == 0 else None
+        self._shape_residual = None
+        if config.shape_residual:
+            if db.shape_residual is None:
+                raise ValueError("shape_residual needs a database with shape_model/residual (train it with "
+                                 "`agentdress shape-residual`)")
+            self._shape_residual = RegressorDecoder(db.shape_residual, self.dtype)
 
         self.pose_model_context = context
         self._allocate_frame_buffers()
@@ -312,6 +320,7 @@ class Engine:
         self._normals = np.zeros((3, v), dtype=self.dtype)
         self._push = np.zeros(v, dtype=self.dtype)
         self._no_pose = np.zeros((3, v), dtype=self.dtype)
+        self._residual_inputs = np.zeros(3 * b + len(self.db.beta0))  # the shape residual's: pose dofs, phenotypes
         if self.projection_vertices is not None:
             self._projected = np.zeros((len(self.projection_vertices), 3), dtype=self.dtype)
             self._projected_normals = np.zeros_like(self._projected)
@@ -452,6 +461,8 @@ class Engine:
         twin.pose_model_context = context
         fork_pose_model = getattr(self.pose_model, "fork", None)
         twin.pose_model = fork_pose_model(context) if callable(fork_pose_model) else self.pose_model
+        if self._shape_residual is not None:
+            twin._shape_residual = self._shape_residual.fork()
         twin._allocate_frame_buffers()
         twin._buffers[0][...] = self._buffers[self._current]
         return twin
@@ -521,6 +532,11 @@ class Engine:
         blocks = (self.block_start, self.block_regions, self.region_w, self.selected, self.weights)
         if config.shape_model:  # else _blended stays all zero: the pose model alone
             block_accumulate(*blocks, state.deltas, self._blended)
+            if self._shape_residual is not None:
+                inputs = self._residual_inputs
+                inputs[: self._theta_flat.size] = self._theta_flat
+                inputs[self._theta_flat.size:] = state.beta
+                self._blended += self._shape_residual.decode(inputs)
         penetration = config.penetration and config.shape_model
         out = self._buffers[1 - self._current]
         bad = synthesize_vertices(self._zero, self.skin_indices, self.skin_weights, self.transforms,

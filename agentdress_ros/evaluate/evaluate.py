@@ -40,7 +40,7 @@ PROJECTION = 16
 
 
 def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, santesteban: bool = False,
-               kdsm: bool = False, recurrent: bool = False) -> list[Row]:
+               kdsm: bool = False, recurrent: bool = False, shape_residual: dict | None = None) -> list[Row]:
     """The rows of the trade table (the anchors' K and the examples pose model's K in {1, 3, 5, 8}, components in
     {2, 5, 10}, penetration and decay off/on, the Sec. 4.6 ablation, float32/64) plus the Fig. 9 anchor sweep: N
     anchors restrict both the shape models and the pose model's examples to those anchors (their beta0 drapes),
@@ -48,7 +48,8 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
     alone and in synthesis, with and without its anchor residuals folded into the shape deltas. With `santesteban`
     (the database has garment_model/santesteban), Santesteban et al.'s own system (engine.santesteban). With `kdsm`
     (pose_model/kdsm), the `kdsm` pose model alone and in synthesis; with `recurrent` (pose_model/recurrent), the
-    `recurrent` pose model alone and in synthesis."""
+    `recurrent` pose model alone and in synthesis. With `shape_residual` (the EngineConfig fields the database's
+    shape_model/residual was trained against), that synthesis with the residual added."""
     # sweeps around the node's default (the examples pose model, the most accurate measured)
     base = {"pose_model": "examples"}
     rows = [
@@ -102,6 +103,10 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
                 {"pose_model": "kdsm", "shape_model": False}),
             Row("synthesis with the kdsm pose model", "kdsm", {"pose_model": "kdsm"}),
         ]
+    if shape_residual is not None:
+        trained = ", ".join(f"{k}={v}" for k, v in sorted(shape_residual.items())) or "the library defaults"
+        rows.append(Row(f"synthesis with the shape residual ({trained}, the configuration it was trained against)",
+                        "shape residual", {**shape_residual, "shape_residual": True}))
     if santesteban:
         rows.append(Row("Santesteban et al. 2019 system (fit and wrinkle regressors, own skinning, push-out "
                         "post-process; no AgentDress synthesis)", "santesteban", {"model": "santesteban"}))
@@ -449,7 +454,8 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
 
     rows = trade_rows(db.n_anchors, db.n_components, regressor=db.regressor is not None,
                       santesteban=db.santesteban is not None, kdsm=db.kdsm_model is not None,
-                      recurrent=db.recurrent is not None)
+                      recurrent=db.recurrent is not None,
+                      shape_residual=None if db.shape_residual is None else db.shape_residual.info.get("engine", {}))
     repeats = 1 if quick else 3
     from tqdm import tqdm
 

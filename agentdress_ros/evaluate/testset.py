@@ -82,14 +82,14 @@ def held_out_shapes(db, config: HeldOutConfig) -> tuple[np.ndarray, list]:
     """(S, 6) shapes and their labels: uniform inside the training range, then just outside it (one trained
     phenotype past its low or high end by `outside_margin`, cycling through the phenotypes whose range leaves room
     inside Anny's [0, 1])."""
+    from ..build.shapes import uniform_shapes
+
     rng = np.random.default_rng(config.seed)
     low, high = np.asarray(db.beta_range, dtype=np.float64).T
     trained = _trained_phenotypes(db)
 
     def random_inside():
-        beta = np.asarray(db.beta0, dtype=np.float64).copy()
-        beta[trained] = rng.uniform(low[trained], high[trained])
-        return beta
+        return uniform_shapes(db.beta0, db.beta_range, 1, rng)[0]
 
     betas = [random_inside() for _ in range(config.shapes_inside)]
     labels = ["inside"] * len(betas)
