@@ -120,11 +120,13 @@ class Regressor:
 
 def write_regressor(h5, regressor: Regressor, name: str = REGRESSOR_GROUP) -> None:
     """Write (or replace) the regressor group `name` in an open, writable HDF5 file. A new pose_model/regressor drops
-    the pose_model/recurrent group trained on the one it replaces."""
+    the groups trained on the one it replaces: pose_model/recurrent, and shape_model/residual (the residual of a
+    synthesis that ran it)."""
     if name in h5:
         del h5[name]
-    if name == REGRESSOR_GROUP and RECURRENT_GROUP in h5:
-        del h5[RECURRENT_GROUP]
+    for trained_on_it in (RECURRENT_GROUP, SHAPE_RESIDUAL_GROUP) if name == REGRESSOR_GROUP else ():
+        if trained_on_it in h5:
+            del h5[trained_on_it]
     group = h5.require_group(name)
     arrays = {"dofs": (regressor.dofs, np.int32), "input_mean": (regressor.input_mean, np.float32),
               "input_scale": (regressor.input_scale, np.float32),
