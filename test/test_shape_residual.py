@@ -194,3 +194,28 @@ def test_command_trains_into_the_database_and_no_learning_library_at_run_time(tm
         "fold=False, shape_residual=True))\n"
         "engine.set_shape([0.6, 0.6, 0.4, 0.6, 0.5, 0.5])\n"
         "assert np.isfinite(engine.synthesize(np.full((engine.n_bones, 3), 0.2))).all()\n")
+
+
+def test_the_evaluation_measures_the_residual_where_the_database_has_one(body, database):
+    """A database with a residual gets a trade-table row in the configuration it was trained against, and a row
+    at beta0 (where its drapes never were)."""
+    from agentdress_ros.evaluate.evaluate import beta0_report, trade_rows
+
+    rows = trade_rows(database.n_anchors, database.n_components, regressor=True, shape_residual=NODE)
+    assert rows[-1].config == {**NODE, "shape_residual": True} and "pose_model=regressor" in rows[-1].name
+    assert not [r for r in trade_rows(database.n_anchors, database.n_components, regressor=True)
+                if r.group == "shape residual"]
+    n_inputs = 3 * len(database.bone_names) + 6
+    zero = Regressor(dofs=np.arange(n_inputs - 6, n_inputs, dtype=np.int32), input_mean=np.zeros(6, np.float32),
+                     input_scale=np.ones(6, np.float32), weights=(np.zeros((6, 1), np.float32),),
+                     biases=(np.zeros(1, np.float32),), coefficient_mean=np.zeros(1, np.float32),
+                     coefficient_scale=np.ones(1, np.float32), mean=np.zeros((database.n_vertices, 3), np.float32),
+                     basis=np.zeros((1, database.n_vertices, 3), np.float32), info={"engine": NODE})
+    poses = canonical_poses(load_sequence_pack(PACK)["rotvecs"][:2])
+    engine = Engine(database, body, EngineConfig(**NODE))
+    drapes = []
+    for pose in poses:
+        engine.reset()  # as the report does: no decay history between static poses
+        drapes.append(np.array(engine.synthesize(pose), dtype=np.float64))
+    report = {r["name"]: r for r in beta0_report(replace(database, shape_residual=zero), body, poses, drapes)}
+    assert report["synthesis with the shape residual"]["error_mean_cm"] < 1e-6  # a zero residual, its own synthesis

@@ -129,7 +129,11 @@ def beta0_report(db, body, poses, drapes) -> list[dict]:
     from ..engine import Engine, EngineConfig
 
     rows, cases = [], []
-    for name, config in BETA0_ROWS:
+    beta0_rows = list(BETA0_ROWS)
+    if db.shape_residual is not None:  # at beta0 it should add next to nothing: its drapes are at other shapes
+        beta0_rows.append(("synthesis with the shape residual",
+                           {**db.shape_residual.info.get("engine", {}), "shape_residual": True}))
+    for name, config in beta0_rows:
         if (config.get("pose_model") == "regressor" and db.regressor is None
                 or config.get("pose_model") == "kdsm" and db.kdsm_model is None):
             continue
