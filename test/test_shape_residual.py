@@ -201,7 +201,8 @@ def test_the_evaluation_measures_the_residual_where_the_database_has_one(body, d
     at beta0 (where its drapes never were)."""
     from agentdress_ros.evaluate.evaluate import beta0_report, trade_rows
 
-    rows = trade_rows(database.n_anchors, database.n_components, regressor=True, shape_residual=NODE)
+    rows = trade_rows(database.n_anchors, database.n_components, regressor=True,
+                      shape_residual={**NODE, "shape_residual": True})
     assert rows[-1].config == {**NODE, "shape_residual": True} and "pose_model=regressor" in rows[-1].name
     assert not [r for r in trade_rows(database.n_anchors, database.n_components, regressor=True)
                 if r.group == "shape residual"]

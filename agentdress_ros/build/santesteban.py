@@ -48,6 +48,18 @@ def inputs(poses: np.ndarray, betas: np.ndarray) -> np.ndarray:
     return np.concatenate([poses.reshape(len(poses), -1), np.asarray(betas, dtype=np.float64)], axis=1)
 
 
+def phenotype_dofs(db) -> np.ndarray:
+    """(6,) the indices of the phenotypes in an input vector of `inputs`."""
+    n_pose = 3 * len(db.parents)
+    return np.arange(n_pose, n_pose + N_PHENOTYPES, dtype=np.int32)
+
+
+def input_dofs(db, features: str) -> np.ndarray:
+    """(I,) what an MLP of pose and shape reads from an input vector of `inputs`: the pose dofs of `features`
+    (build.regressor.pose_dofs), then the 6 phenotypes."""
+    return np.concatenate([pose_dofs(db, features), phenotype_dofs(db)]).astype(np.int32)
+
+
 def unposed_anchor_drapes(db, body, drapes_path) -> np.ndarray:
     """(A, S, V, 3) each anchor's drape on each training shape (from the build's drape pack), unposed to that
     shape's rest frame."""
@@ -92,9 +104,8 @@ def train(db, body, drapes_path, pack: dict, settings: SantestebanSettings, prog
     rest = np.asarray(db.rest, dtype=np.float64)
     betas = np.asarray(db.training_betas, dtype=np.float64)
     n_anchors, n_shapes = unposed.shape[:2]
-    n_pose = 3 * len(db.parents)
     bar.update()
-    shape_inputs = np.arange(n_pose, n_pose + N_PHENOTYPES, dtype=np.int32)
+    shape_inputs = phenotype_dofs(db)
     fit_target = unposed.mean(axis=0) - rest  # (S, V, 3)
     fit_inputs = inputs(np.zeros((n_shapes, len(db.parents), 3)), betas)
     fit_regressor, _ = fit(TrainingData(fit_inputs, fit_target, np.array(["shapes"] * n_shapes)), shape_inputs,
@@ -113,8 +124,8 @@ def train(db, body, drapes_path, pack: dict, settings: SantestebanSettings, prog
     pack_y = frames.positions - rest - beta0_fit
     x = np.concatenate([pack_x] + [anchor_x] * settings.anchor_copies)
     y = np.concatenate([pack_y] + [anchor_y] * settings.anchor_copies)
-    dofs = np.concatenate([pose_dofs(db, settings.wrinkles.features), shape_inputs]).astype(np.int32)
-    wrinkles, _ = fit(TrainingData(x, y, np.array(["all"] * len(x))), dofs, settings.wrinkles)
+    wrinkles, _ = fit(TrainingData(x, y, np.array(["all"] * len(x))), input_dofs(db, settings.wrinkles.features),
+                      settings.wrinkles)
     bar.update()
     bar.close()
     anchor_error = np.linalg.norm(predict(wrinkles, anchor_x) + fit_predicted[np.tile(np.arange(n_shapes), n_anchors)]

@@ -87,18 +87,19 @@ def shaped_jobs(db, rest_jobs: list, seed: int = 0, margin: float = SHAPED_MARGI
                      warm_pose=job.pose, warm_beta=job.beta) for job, beta in zip(rest_jobs, betas)]
 
 
-def shaped_offsets(body, db, jobs, drapes) -> list:
-    """Rows (3V,) of each drape (V, 3) unposed with its job's shape's bones, minus the garment fitted to that
-    shape at rest (`Garment.rest_vertices`): what a shaped pack stores."""
+def shaped_offsets(body, db, betas, poses, garments) -> list:
+    """Rows (3V,) of each posed garment (V, 3) of `garments` unposed with the bones of its shape (betas (F, 6)) in
+    its pose (poses (F, B, 3)), minus the garment fitted to that shape at rest (`Garment.rest_vertices`): what a
+    shaped pack stores."""
     from ..garment import make_garment
     from .sequences import rest_frame_offsets
 
     garment = make_garment(db.garment, body, db.n_vertices)
     rows = []
-    for job, drape in zip(jobs, drapes):
-        shape = body.shape(job.beta)
+    for beta, pose, posed in zip(betas, poses, garments):
+        shape = body.shape(beta)
         rows += rest_frame_offsets(body, shape, db.skin_indices, db.skin_weights, garment.rest_vertices(body, shape),
-                                   [drape], [job.pose], np.zeros((1, 3)))
+                                   [posed], [pose], np.zeros((1, 3)))
     return rows
 
 
@@ -156,20 +157,19 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
         run_jobs(jobs, store, workers=workers, progress=progress)
     # the database's garment, which need not be the pack's with --start rest (the pack gives only the poses)
     rest = np.asarray(db.rest, dtype=np.float64)
+    drapes, poses, shaped = [store.load(job.key) for job in jobs], [job.pose for job in jobs], {}
     if start == "shaped":  # each drape unposed with its own shape's bones, from the garment fitted to that shape
-        offsets = shaped_offsets(body, db, jobs, [store.load(job.key) for job in jobs])
+        shaped = {"betas": np.array([job.beta for job in jobs])}
+        offsets = shaped_offsets(body, db, shaped["betas"], poses, drapes)
     else:
-        offsets = rest_frame_offsets(body, body.shape(db.beta0), db.skin_indices, db.skin_weights, rest,
-                                     [store.load(job.key) for job in jobs], [job.pose for job in jobs],
-                                     np.zeros((len(jobs), 3)))
+        offsets = rest_frame_offsets(body, body.shape(db.beta0), db.skin_indices, db.skin_weights, rest, drapes,
+                                     poses, np.zeros((len(jobs), 3)))
     stats = [store.stats(job.key) for job in jobs]
     n = len(jobs)
     done = np.array([job.index for job in jobs], dtype=np.int64)  # the pack frames settled (all but with partial)
     fields = {"rotvecs": pack["rotvecs"][done], "root_translation": np.zeros((n, 3)),
               "root_velocity": np.zeros((n, 3)), "cloth_speed": np.zeros(n), "body_speed": np.zeros(n),
-              "clip": pack["clip"][done], "frame": pack["frame"][done]}
-    if start == "shaped":
-        fields["betas"] = np.array([job.beta for job in jobs])
+              "clip": pack["clip"][done], "frame": pack["frame"][done], **shaped}
     names = [str(c) for c in pack["clips"]]
     error, explained, k = write_pack(out, db.garment, db.n_vertices, np.asarray(db.beta0), rest,
                                      np.asarray(db.faces), offsets, fields, names, [True] * len(names),

@@ -1,19 +1,19 @@
 """Training of the shape residual (EngineConfig.shape_residual), offline, with scikit-learn.
 
-    agentdress shape-residual --database data/trousers_default.h5 --shaped data/trousers_shaped.npz \
+    agentdress shape-residual --database data/trousers_default.h5 --shaped out/shaped/trousers_shaped.npz \
         --engine pose_model=regressor fold=false
 
 Why: synthesis carries each anchor's shape model to a pose through the sensitivity-weighted blend of the nearest
 anchors, and each shape model is fitted on 17 shapes that vary one phenotype at a time. At a shape that varies
 several at once, in a pose between the anchors, it misses what neither captures; with a perfect pose model the
-trousers' held-out error stays at the shape term's 1.46 cm (README "The trousers' pose model costs nothing").
+trousers' held-out error stays at the shape term's 1.46 cm (README "What the trousers' pose model costs").
 
 Data: a shaped pack (`agentdress settle --start shaped`): the training clips' poses draped at random shapes, each
 stored unposed with its own shape's bones. Target of each drape: the drape minus the engine's synthesis at the same
 shape and pose (the configuration `--engine`, the one the residual will correct), both unposed with that shape's
 bones - the frame in which the synthesis kernel adds the blended shape delta (Eq. 4), so adding the target to the
 delta moves the output onto the drape. Model: the regressor's PCA + MLP (build.regressor.fit), its inputs the pose's
-sensitivity dofs followed by the 6 phenotypes (build.santesteban.inputs). Validation holds out whole clips.
+sensitivity dofs followed by the 6 phenotypes (build.santesteban.inputs, input_dofs). Validation holds out whole clips.
 Deterministic given the seed; stored atomically as shape_model/residual, with the engine configuration in its info.
 """
 from __future__ import annotations
@@ -21,17 +21,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from ..engine.database import SHAPE_RESIDUAL_GROUP, read_database, write_regressor
 from .regressor import (RegressorSettings, TrainingData, add_network_arguments, cross_validate, fit, network_settings,
-                        pose_dofs, predict, store_in_database, vertex_error)
-from .santesteban import N_PHENOTYPES, inputs
+                        predict, store_in_database, vertex_error)
+from .santesteban import input_dofs, inputs
 
-#: The network's defaults: a few hundred drapes, so a small PCA and a strong penalty (README "The shape residual").
+#: The network's defaults: a few hundred drapes, so a small PCA and a strong penalty (README "A learned shape
+#: residual, measured").
 DEFAULTS = RegressorSettings(components=32, hidden=(256,), alpha=10.0, examples=0, ensemble=5)
 
 
@@ -55,48 +56,38 @@ def residual_data(db, body, pack: dict, config: dict, progress: bool = True) -> 
 
     from ..engine import Engine, EngineConfig
     from ..engine.pose_models import canonical_poses
-    from ..garment import make_garment
-    from .sequences import check_training_clips, rest_frame_offsets
+    from .sequences import check_training_clips
+    from .settled import shaped_offsets
 
     if "betas" not in pack:
         raise ValueError("the pack has no per-drape shapes: make it with `agentdress settle --start shaped`")
     names = [str(n) for n in pack["clips"]]
     check_training_clips(names)
     engine = Engine(db, body, EngineConfig(**{**config, "shape_residual": False}))
-    garment = make_garment(db.garment, body, db.n_vertices)
     poses = canonical_poses(pack["rotvecs"])
     betas = np.asarray(pack["betas"], dtype=np.float64)
-    residuals = np.empty((len(poses), db.n_vertices, 3))
-    for f in tqdm(range(len(poses)), desc="synthesis at the shaped drapes", unit="drape", disable=not progress):
-        engine.set_shape(betas[f])
+    synthesis = []
+    for beta, pose in tqdm(zip(betas, poses), total=len(poses), desc="synthesis at the shaped drapes", unit="drape",
+                           disable=not progress):
+        engine.set_shape(beta)
         engine.reset()
-        synthesis = np.array(engine.synthesize(poses[f]), dtype=np.float64)
-        shape = body.shape(betas[f])
-        unposed = rest_frame_offsets(body, shape, db.skin_indices, db.skin_weights, garment.rest_vertices(body, shape),
-                                     [synthesis], [poses[f]], np.zeros((1, 3)))[0]
-        residuals[f] = np.asarray(pack["offsets"][f], dtype=np.float64) - unposed.reshape(-1, 3)
+        synthesis.append(np.array(engine.synthesize(pose), dtype=np.float64))
+    # stored the way the pack stores its drapes, so the difference is the rest-frame residual
+    unposed = np.reshape(shaped_offsets(body, db, betas, poses, synthesis), (len(poses), -1, 3))
+    residuals = np.asarray(pack["offsets"], dtype=np.float64) - unposed
     return TrainingData(inputs(poses, betas), residuals, np.array(names)[pack["clip"]])
-
-
-def input_dofs(db, settings: RegressorSettings) -> np.ndarray:
-    """(I,) the inputs the MLP reads: the pose dofs of settings.features, then the 6 phenotypes."""
-    n_pose = 3 * len(db.bone_names)
-    return np.concatenate([pose_dofs(db, settings.features),
-                           np.arange(n_pose, n_pose + N_PHENOTYPES)]).astype(np.int32)
 
 
 def train(db, body, pack: dict, config: dict, settings: RegressorSettings = DEFAULTS, folds: int = 3,
           progress: bool = True):
     """(Regressor, report): cross-validated by clip, then trained on every drape of the shaped pack."""
     data = residual_data(db, body, pack, config, progress)
-    dofs = input_dofs(db, settings)
+    dofs = input_dofs(db, settings.features)
     report = cross_validate(data, None, dofs, settings, folds)
     report["residual_before_m"] = vertex_error(np.zeros_like(data.positions), data.positions)
     residual, _ = fit(data, dofs, settings)
     info = {**residual.info, "engine": config, "drapes": int(len(data.poses)),
-            "clips": sorted(set(data.groups.tolist())), "shape_range": np.asarray(pack["betas"]).min(axis=0).tolist()
-            + np.asarray(pack["betas"]).max(axis=0).tolist(),
-            "training_error_m": vertex_error(predict(residual, data.poses), data.positions), **report}
+            "clips": sorted(set(data.groups.tolist())), "training_error_m": vertex_error(predict(residual, data.poses), data.positions), **report}
     return replace(residual, info=info), info
 
 
@@ -118,10 +109,10 @@ def main(argv=None) -> int:
     db = read_database(args.database)
     residual, info = train(db, AnnyBody(), load_sequence_pack(args.shaped), engine_config(args.engine), settings,
                            args.folds)
-    info = {**info, "settings": asdict(settings), "shaped_pack": str(args.shaped)}
+    info = {**info, "shaped_pack": str(args.shaped)}  # the settings are in it (build.regressor.fit)
     if not args.validate_only:
         before = Path(args.database).stat().st_size
-        residual = replace(residual, info=json.loads(json.dumps(info)))
+        residual = replace(residual, info=info)
         store_in_database(args.database, lambda h5: write_regressor(h5, residual, SHAPE_RESIDUAL_GROUP))
         info = {**info, "bytes_before": before, "bytes_after": Path(args.database).stat().st_size}
     print(json.dumps({"database": str(args.database), **info}, default=str))

@@ -54,12 +54,18 @@ def shape_scale() -> np.ndarray:
     return scale
 
 
-def uniform_shapes(beta0, beta_range, count: int, rng, margin: float = 0.0) -> np.ndarray:
-    """(count, 6) shapes whose trained phenotypes (those the range (6, 2) spans) are drawn uniformly from the range
-    widened by `margin` on both sides (clipped to Anny's [0, 1]); the others stay at beta0. One draw per shape, in
-    order, so a seeded rng gives the same shapes however many are asked for."""
+def trained_phenotypes(beta_range) -> np.ndarray:
+    """(T,) indices of the phenotypes a database's training range (6, 2) spans: those its shape models vary."""
     low, high = np.asarray(beta_range, dtype=np.float64).T
-    trained = np.flatnonzero(high - low > 1e-9)
+    return np.flatnonzero(high - low > 1e-9)
+
+
+def uniform_shapes(beta0, beta_range, count: int, rng, margin: float = 0.0) -> np.ndarray:
+    """(count, 6) shapes whose trained phenotypes (trained_phenotypes) are drawn uniformly from the range widened by
+    `margin` on both sides (clipped to Anny's [0, 1]); the others stay at beta0. One draw per shape, in order, so a
+    seeded rng gives the same shapes however many are asked for."""
+    trained = trained_phenotypes(beta_range)
+    low, high = np.asarray(beta_range, dtype=np.float64).T
     low, high = np.clip(low - margin, 0.0, 1.0), np.clip(high + margin, 0.0, 1.0)
     shapes = np.repeat(np.asarray(beta0, dtype=np.float64)[None], count, axis=0)
     for shape in shapes:

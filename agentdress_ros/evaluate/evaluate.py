@@ -48,8 +48,8 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
     alone and in synthesis, with and without its anchor residuals folded into the shape deltas. With `santesteban`
     (the database has garment_model/santesteban), Santesteban et al.'s own system (engine.santesteban). With `kdsm`
     (pose_model/kdsm), the `kdsm` pose model alone and in synthesis; with `recurrent` (pose_model/recurrent), the
-    `recurrent` pose model alone and in synthesis. With `shape_residual` (the EngineConfig fields the database's
-    shape_model/residual was trained against), that synthesis with the residual added."""
+    `recurrent` pose model alone and in synthesis. With `shape_residual` (shape_residual_config: the configuration
+    the database's shape_model/residual was trained against, the residual on), that synthesis."""
     # sweeps around the node's default (the examples pose model, the most accurate measured)
     base = {"pose_model": "examples"}
     rows = [
@@ -104,9 +104,9 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
             Row("synthesis with the kdsm pose model", "kdsm", {"pose_model": "kdsm"}),
         ]
     if shape_residual is not None:
-        trained = ", ".join(f"{k}={v}" for k, v in sorted(shape_residual.items())) or "the library defaults"
-        rows.append(Row(f"synthesis with the shape residual ({trained}, the configuration it was trained against)",
-                        "shape residual", {**shape_residual, "shape_residual": True}))
+        trained = ", ".join(f"{k}={v}" for k, v in sorted(shape_residual.items()) if k != "shape_residual")
+        rows.append(Row(f"synthesis with the shape residual ({trained or 'the library defaults'}, the configuration "
+                        "it was trained against)", "shape residual", dict(shape_residual)))
     if santesteban:
         rows.append(Row("Santesteban et al. 2019 system (fit and wrinkle regressors, own skinning, push-out "
                         "post-process; no AgentDress synthesis)", "santesteban", {"model": "santesteban"}))
@@ -123,6 +123,14 @@ BETA0_ROWS = (("lbs pose model alone", {"shape_model": False}),
               ("synthesis, kdsm pose model", {"pose_model": "kdsm"}))
 
 
+def shape_residual_config(db) -> dict | None:
+    """The EngineConfig fields of synthesis with the database's shape residual, in the configuration it was trained
+    against (None without one)."""
+    if db.shape_residual is None:
+        return None
+    return {**db.shape_residual.info.get("engine", {}), "shape_residual": True}
+
+
 def beta0_report(db, body, poses, drapes) -> list[dict]:
     """Each pose model alone (and synthesis with it) at beta0 against the beta0 drapes of the held-out poses: mean and
     p95 error (cm), with a 95 % bootstrap interval over the poses (the same resamples for every row)."""
@@ -131,8 +139,7 @@ def beta0_report(db, body, poses, drapes) -> list[dict]:
     rows, cases = [], []
     beta0_rows = list(BETA0_ROWS)
     if db.shape_residual is not None:  # at beta0 it should add next to nothing: its drapes are at other shapes
-        beta0_rows.append(("synthesis with the shape residual",
-                           {**db.shape_residual.info.get("engine", {}), "shape_residual": True}))
+        beta0_rows.append(("synthesis with the shape residual", shape_residual_config(db)))
     for name, config in beta0_rows:
         if (config.get("pose_model") == "regressor" and db.regressor is None
                 or config.get("pose_model") == "kdsm" and db.kdsm_model is None):
@@ -459,7 +466,7 @@ def evaluate(db_path, out_dir, cache, clips=None, quick: bool = False, workers: 
     rows = trade_rows(db.n_anchors, db.n_components, regressor=db.regressor is not None,
                       santesteban=db.santesteban is not None, kdsm=db.kdsm_model is not None,
                       recurrent=db.recurrent is not None,
-                      shape_residual=None if db.shape_residual is None else db.shape_residual.info.get("engine", {}))
+                      shape_residual=shape_residual_config(db))
     repeats = 1 if quick else 3
     from tqdm import tqdm
 

@@ -73,20 +73,15 @@ class HeldOutSet:
     # "rotvecs" (T, B, 3), "root_translation" (T, 3)}: newton ground truth along a held-out clip, root motion kept
 
 
-def _trained_phenotypes(db) -> np.ndarray:
-    low, high = np.asarray(db.beta_range, dtype=np.float64).T
-    return np.flatnonzero(high - low > 1e-9)
-
-
 def held_out_shapes(db, config: HeldOutConfig) -> tuple[np.ndarray, list]:
     """(S, 6) shapes and their labels: uniform inside the training range, then just outside it (one trained
     phenotype past its low or high end by `outside_margin`, cycling through the phenotypes whose range leaves room
     inside Anny's [0, 1])."""
-    from ..build.shapes import uniform_shapes
+    from ..build.shapes import trained_phenotypes, uniform_shapes
 
     rng = np.random.default_rng(config.seed)
     low, high = np.asarray(db.beta_range, dtype=np.float64).T
-    trained = _trained_phenotypes(db)
+    trained = trained_phenotypes(db.beta_range)
 
     def random_inside():
         return uniform_shapes(db.beta0, db.beta_range, 1, rng)[0]
