@@ -215,6 +215,35 @@ def test_floor_drapes_the_held_out_cases_along_another_path_and_compares(quick_e
     assert again["mean_cm"] == report["mean_cm"]
 
 
+def test_floor_along_the_databases_path_warm_starts_every_shape_from_the_drape_at_beta0(quick_eval, tmp_path):
+    """`agentdress floor --path database` on the quick v2 set: every shape of the pose is draped again from the pose's
+    drape at beta0 with the build's warm settings and compared with its held-out drape; a rerun simulates nothing."""
+    from agentdress_ros.build.jobs import read_drape_pack
+    from agentdress_ros.engine import read_database
+    from agentdress_ros.evaluate.floor import ground_truth_spread
+
+    folder, report = quick_eval
+    clip = shared_path("mocap", "cmu", f"{HELD_OUT_CLIPS[0]}.bvh")
+    out = tmp_path / "floor"
+    args = (DATABASE, folder / "cache", folder / "report" / "ground_truth_drapes.npz", out, {"max_frames": 30})
+    kwargs = dict(every=1, workers=0, progress=False, clips=[clip], quick=True, path="database",
+                  beta0_pack=out / "ground_truth_beta0.npz")
+    spread = ground_truth_spread(*args, **kwargs)
+    shapes = len(report["test_set"]["betas"])
+    assert spread["path"] == "database" and [c["shape"] for c in spread["cases"]] == list(range(shapes))
+    warm = read_database(DATABASE).provenance["config"]["warm_drape"]
+    assert all(spread["alternative"][k] == v for k, v in warm.items()) and spread["alternative"]["max_frames"] == 30
+    assert all(0.0 < c["mean_cm"] < 10.0 for c in spread["cases"]) and len(spread["mean_cm_per_shape"]) == shapes
+    packed = read_drape_pack(out / "floor_database_drapes.npz")["drapes"]
+    assert {"beta0_0000_00"} | {f"floor_0000_{k:02d}" for k in range(shapes)} == set(packed)
+    assert (out / "ground_truth_beta0.npz").is_file() and (out / "floor_database.json").is_file()
+    import shutil
+
+    shutil.rmtree(folder / "cache" / "floor_database")  # the pack alone carries the other path's drapes
+    again = ground_truth_spread(*args, **kwargs)
+    assert again["mean_cm"] == spread["mean_cm"]
+
+
 def test_pose_model_share_removes_exactly_the_pose_models_error(body):
     """With drapes built as drape(beta0) + synthesis(beta) - synthesis(beta0), a perfect pose model leaves no error,
     and the synthesis row's own error is its beta0 output's distance from drape(beta0) (here 1 cm everywhere)."""
