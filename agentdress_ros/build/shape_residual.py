@@ -87,7 +87,8 @@ def train(db, body, pack: dict, config: dict, settings: RegressorSettings = DEFA
     report["residual_before_m"] = vertex_error(np.zeros_like(data.positions), data.positions)
     residual, _ = fit(data, dofs, settings)
     info = {**residual.info, "engine": config, "drapes": int(len(data.poses)),
-            "clips": sorted(set(data.groups.tolist())), "training_error_m": vertex_error(predict(residual, data.poses), data.positions), **report}
+            "clips": sorted(set(data.groups.tolist())),
+            "training_error_m": vertex_error(predict(residual, data.poses), data.positions), **report}
     return replace(residual, info=info), info
 
 

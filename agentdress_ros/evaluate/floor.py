@@ -26,8 +26,9 @@ import numpy as np
 __all__ = ["ground_truth_spread", "main"]
 
 
-#: The other paths a held-out case can be draped along (see the module docstring).
-PATHS = ("ramp", "database")
+#: The other paths a held-out case can be draped along (see the module docstring), with their default overrides.
+DEFAULT_ALTERNATIVE = {"ramp": {"ramp_frames": 60}, "database": {}}
+PATHS = tuple(DEFAULT_ALTERNATIVE)
 
 
 def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int = 2, workers: int = 0,
@@ -38,6 +39,8 @@ def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int
     draped from rest under the `alternative` DrapeSettings overrides; "database": every shape warm-started from the
     pose's drape at beta0 (read from `beta0_pack` when present) with the database build's warm settings plus
     `alternative`. Returns per-case and overall distances (cm) and writes floor.json (floor_database.json)."""
+    if path not in PATHS:
+        raise ValueError(f"path must be one of {', '.join(PATHS)}, got {path!r}")
     from ..body import AnnyBody
     from ..build.builder import run_jobs
     from ..build.jobs import DrapeJob, DrapeStore
@@ -45,6 +48,7 @@ def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int
     from ..garment import make_garment
     from ..garment.inside import BodyInside
     from ..sim.posing import visible_body
+    from .beta0 import held_out_beta0
     from .evaluate import held_out_config
     from .testset import held_out_poses, held_out_shapes, static_jobs, test_set_key
 
@@ -56,8 +60,6 @@ def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int
     reference = DrapeStore(Path(cache) / "drapes")
     if pack is not None and Path(pack).is_file():
         reference.unpack(pack, test_set_key(db, config, betas))
-    if path not in PATHS:
-        raise ValueError(f"path must be one of {', '.join(PATHS)}, got {path!r}")
     picked = set(range(len(poses))[::every])
     chosen = [job for job in static_jobs(db, config, poses, betas)
               if job.index in picked and (path == "database" or job.shape_index == 0)]
@@ -74,8 +76,6 @@ def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int
     else:
         settings = {**db.provenance["config"]["drape"], **db.provenance["config"]["warm_drape"], **alternative}
         beta0 = np.asarray(db.beta0, dtype=np.float64)
-        from .beta0 import held_out_beta0
-
         garment = make_garment(db.garment, body, db.n_vertices)
         sources, _, _ = held_out_beta0(db, body, garment, config, cache, workers=workers, progress=progress,
                                        pack=beta0_pack)
@@ -139,7 +139,8 @@ def main(argv=None) -> int:
                         "out/eval-cache-v2/<database file name without .h5>)")
     parser.add_argument("--ground-truth", default=None, help="the v2 held-out set's pack (default: "
                         "<out>/ground_truth_drapes.npz)")
-    parser.add_argument("--out", default="docs/eval/v2/tshirt", help="folder for floor.json and floor_drapes.npz")
+    parser.add_argument("--out", default="docs/eval/v2/tshirt", help="folder for floor.json and floor_drapes.npz "
+                        "(floor_database.* with --path database)")
     parser.add_argument("--alternative", default=None, help="JSON DrapeSettings overrides of the second path "
                         "(default: {\"ramp_frames\": 60} for --path ramp, none for --path database)")
     parser.add_argument("--every", type=int, default=2, help="take every this many-th held-out pose")
@@ -153,8 +154,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     cache = args.cache or default_cache(args.database, "v2")
     pack = args.ground_truth or Path(args.out) / "ground_truth_drapes.npz"
-    alternative = json.loads(args.alternative) if args.alternative else ({"ramp_frames": 60} if args.path == "ramp"
-                                                                        else {})
+    alternative = json.loads(args.alternative) if args.alternative else DEFAULT_ALTERNATIVE[args.path]
     report = ground_truth_spread(args.database, cache, pack, args.out, alternative, args.every, args.workers,
                                  progress=not args.quiet, path=args.path,
                                  beta0_pack=args.beta0_pack or Path(args.out) / "ground_truth_beta0.npz")
