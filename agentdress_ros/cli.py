@@ -90,6 +90,7 @@ def _build(args) -> int:
         holdout_anchors=args.holdout_anchors,
         pose_every=args.pose_every,
         clips=[str(p) for p in args.clips],
+        repair_flips=not args.raw_clips,
         procedural=args.procedural,
         drape=json.loads(args.drape) if args.drape else {},
         **({"warm_drape": json.loads(args.warm_drape)} if args.warm_drape else {}),
@@ -132,6 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--holdout-anchors", type=int, default=4, help="anchors also draped on a held-out shape")
     build.add_argument("--pose-every", type=int, default=4, help="take one clip pose every this many frames")
     build.add_argument("--clips", nargs="*", default=[], help="CMU .bvh clips for the pose set")
+    build.add_argument("--raw-clips", action="store_true", help="take the clips' poses as recorded, without "
+                       "repairing knee and elbow flips (how the shipped databases were built: add it to rebuild "
+                       "them from their drape packs)")
     build.add_argument("--procedural", nargs="*", default=["idle", "walk", "reach", "sweep", "wipe", "wave", "squat"],
                        help="procedural motions for the pose set")
     build.add_argument("--drape", default="", help="JSON object of DrapeSettings overrides")

@@ -233,8 +233,17 @@ def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(ti
     continued, reference = read_database(out), read_database(reference_path)
     for field in ("anchor_poses", "pca_mean", "pca_components", "ridge", "example_drapes", "sequence_drapes"):
         np.testing.assert_array_equal(getattr(continued, field), getattr(reference, field), err_msg=field)
-    with pytest.raises(ValueError, match="other parameters"):
+    with pytest.raises(ValueError, match="other parameters .*seed: 0 -> 1"):
         DrapeStore(tmp_path / "other").unpack(pack, BuildConfig(**{**TINY, "seed": 1}).plan_key())
+    # Drapes packed by a build on the clips as recorded (the shipped packs: their key has no repair_flips) are
+    # refused by a build that repairs the capture's flips, with the flag that takes them.
+    raw = BuildConfig(**{**TINY, "repair_flips": False})
+    assert raw.plan_key() == json.dumps({k: v for k, v in json.loads(config.plan_key()).items()
+                                         if k != "repair_flips"}, sort_keys=True)
+    raw_pack = tmp_path / "raw.npz"
+    DrapeStore(work / "drapes").pack(raw_pack, raw.plan_key())
+    with pytest.raises(ValueError, match="(?s)repair_flips.*--raw-clips"):
+        build_database(config, tmp_path / "raw.h5", workers=0, progress=False, seed_drapes=raw_pack, partial=True)
 
     # drop one shape of anchor 1 and the last sequence frame: a partial database has anchor 0 and one frame
     (tmp_path / "continued.h5.work" / "drapes" / "anchor_0001_03.npz").unlink()

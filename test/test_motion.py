@@ -415,6 +415,81 @@ def test_retarget_keeps_feet_on_the_floor(name):
     assert abs(np.median(lowest) - floor) < 0.04
 
 
+# --------------------------------------------------------------------------------------------------------- cleanup
+
+
+def _rotate_world(rotvecs, heads, bone: int, turn, frames):
+    """rotvecs with `bone`'s world rotation turned by `turn` (3, 3) in `frames` (children follow rigidly)."""
+    out = rotvecs.copy()
+    _, glob = skeleton.forward_kinematics(rotvecs, np.zeros(3), heads)
+    parent = PARENTS[bone]
+    for f in frames:
+        out[f, bone] = rotations.matrix_to_rotvec(glob[f, parent].T @ turn[f] @ glob[f, bone])
+    return out
+
+
+@needs_anny
+def test_limb_flip_repair_restores_an_injected_flip():
+    """A smooth kicking motion; frames 20-34 get the capture's flip: the right thigh turned 170 degrees about the
+    hip-ankle line (the leg with it) and the foot's local rotation turned 150 degrees the other way. The repair
+    gives back the motion before the flip (to the one frame of motion its extrapolation misses), and leaves the left leg and the arms alone."""
+    from agentdress_ros.motion.cleanup import repair_limb_flips
+
+    heads, _ = skeleton.rig_default_heads_tails()
+    t = np.arange(60) / 120.0
+    clean = np.zeros((60, NUM_BONES, 3))
+    clean[:, IDX["RightUpLeg"], 0] = -1.2 * np.sin(2 * np.pi * t)  # a kick forward (slow: 7.5 rad/s at most)
+    clean[:, IDX["RightLeg"], 0] = 0.8 + 0.2 * t
+    clean[:, IDX["RightFoot"], 1] = 0.4 * t
+    clean[:, IDX["LeftArm"], 2] = 0.5 * t
+    pos, _ = skeleton.forward_kinematics(clean, np.zeros(3), heads)
+    flipped_frames = range(20, 35)
+    axes = pos[:, IDX["RightFoot"]] - pos[:, IDX["RightUpLeg"]]
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    turn = rotations.rotvec_to_matrix(axes * np.radians(170.0))
+    flipped = _rotate_world(clean, heads, IDX["RightUpLeg"], turn, flipped_frames)
+    foot_turn = rotations.rotvec_to_matrix(np.array([0.3, -0.9, 0.3]) / np.linalg.norm([0.3, -0.9, 0.3])
+                                           * np.radians(150.0))
+    for f in flipped_frames:
+        flipped[f, IDX["RightFoot"]] = rotations.matrix_to_rotvec(
+            foot_turn @ rotations.rotvec_to_matrix(flipped[f, IDX["RightFoot"]]))
+    flipped_pos, _ = skeleton.forward_kinematics(flipped, np.zeros(3), heads)
+    assert np.linalg.norm(flipped_pos[20, IDX["RightLeg"]] - pos[20, IDX["RightLeg"]]) > 0.2  # the knee jumped
+    np.testing.assert_allclose(flipped_pos[:, IDX["RightFoot"]], pos[:, IDX["RightFoot"]], atol=1e-12)
+
+    repaired, report = repair_limb_flips(flipped, heads, fps=120.0)
+    np.testing.assert_allclose(rotations.rotvec_to_matrix(repaired), rotations.rotvec_to_matrix(clean), atol=1e-3)
+    assert report == [{"limb": "RightUpLeg", "flips": [20, 35], "frames_corrected": 15,
+                       "end_bone_flips": [20, 35], "end_bone_frames_corrected": 15}]
+    unchanged, none = repair_limb_flips(clean, heads, fps=120.0)
+    assert none == [] and np.array_equal(unchanged, clean)
+
+
+@needs_anny
+def test_cmu_dance_flips_are_repaired_and_other_clips_untouched():
+    """05_16's right knee jumps 35 cm in one 120 fps frame (202) and back (219) while hip and ankle stay: after
+    load_cmu_motion the knees move at most 6 cm a frame there and hips and ankles are where the capture
+    has them. A clip without flips (02_01, a test clip) comes back bit for bit."""
+    path = mocap("cmu", "05_16.bvh")
+    raw = retarget.load_cmu_motion(path, repair_flips=False)
+    repaired = retarget.load_cmu_motion(path)
+    heads, _ = skeleton.rig_default_heads_tails()
+    before, _ = skeleton.forward_kinematics(raw.rotvecs, raw.root_translation, heads)
+    after, _ = skeleton.forward_kinematics(repaired.rotvecs, repaired.root_translation, heads)
+    knee = IDX["RightLeg"]
+    assert np.linalg.norm(before[202, knee] - before[201, knee]) > 0.3
+    steps = np.linalg.norm(np.diff(after[195:225], axis=0), axis=2)
+    legs = [IDX[f"{side}{bone}"] for side in ("Left", "Right") for bone in ("UpLeg", "Leg", "Foot", "ToeBase")]
+    assert steps[:, [IDX["LeftLeg"], knee]].max() < 0.06  # knees: 36-39 cm jumps before
+    assert steps[:, legs].max() < 0.12  # the ankle itself kicks at up to 10 cm a frame in the capture
+    kept = [b for b in range(NUM_BONES) if b not in (IDX["LeftLeg"], IDX["RightLeg"], IDX["LeftToeBase"],
+                                                       IDX["RightToeBase"])]
+    np.testing.assert_allclose(after[:, kept], before[:, kept], atol=1e-9)
+    walk = mocap("cmu", "02_01.bvh")
+    assert np.array_equal(retarget.load_cmu_motion(walk).rotvecs,
+                          retarget.load_cmu_motion(walk, repair_flips=False).rotvecs)
+
+
 # --------------------------------------------------------------------------------------------------------- procedural
 
 

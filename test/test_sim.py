@@ -313,6 +313,22 @@ def test_a_resumed_sequence_gives_the_frames_of_an_uninterrupted_run(swing_seque
 
 
 @needs_newton
+def test_a_sequence_is_not_continued_on_another_motion_of_the_same_name(body, swing_sequences):
+    """The chunks carry a digest of the motion: a clip processed otherwise (a repaired capture flip) under the same
+    name and settings is refused, not continued from frames of the old motion."""
+    from agentdress_ros.motion.skeleton import Motion
+    from agentdress_ros.sim.sequence import SequenceSettings, simulate_sequence
+
+    folder, garment, motion, _ = swing_sequences
+    other = Motion(rotvecs=motion.rotvecs * 1.01, root_translation=motion.root_translation, fps=30.0, name="swing")
+    settings = SequenceSettings(chunk_frames=3, ramp_frames=4, settle_frames=10,
+                                drape=DrapeSettings(substeps=4, iterations=2))
+    with pytest.raises(ValueError, match="other settings"):
+        simulate_sequence(other, garment, body.shape().beta, folder / garment.name / "whole", settings, body=body,
+                          progress=False)
+
+
+@needs_newton
 def test_stepping_variants_continue_from_the_reference_checkpoint(body, swing_sequences):
     """`agentdress bench sequence`: every variant continues from the reference's first chunk, so the reference's
     own continuation is the uninterrupted run, frame for frame, and a coarser stepping is measured against it."""
@@ -374,3 +390,12 @@ def test_a_clip_packed_part_way_is_kept_and_simulated_again(body, swing_sequence
     clips = [Path("mocap/whole.bvh"), Path("mocap/part.bvh"), Path("mocap/new.bvh")]
     assert clips_to_simulate(clips, tmp_path / "pack.npz", tmp_path / "elsewhere") == clips[1:]
     assert clips_to_simulate(clips, tmp_path / "pack.npz", root / garment.name) == clips  # folders under way
+    # the clip simulated again (whole this time) keeps its place; the other comes from the pack as it was
+    again = tmp_path / "again"
+    shutil.copytree(folder / garment.name / "whole", again / garment.name / "part")
+    report = pack_sequences(again, garment.name, garment.n_vertices, tmp_path / "pack.npz", components=8)
+    repacked = load_sequence_pack(tmp_path / "pack.npz")
+    assert report["frames"] == 7 + 7 and repacked["clips"].tolist() == ["part", "whole"]
+    assert repacked["clip_complete"].tolist() == [True, True]
+    np.testing.assert_allclose(repacked["offsets"][repacked["clip"] == 1], pack["offsets"][pack["clip"] == 1],
+                               atol=1e-3)

@@ -47,6 +47,9 @@ class BuildConfig:
     holdout_anchors: int = 4  # anchors draped on one extra, held-out shape to measure the shape model
     pose_every: int = 4  # one pose every few frames of each clip (the paper: 4)
     clips: list = field(default_factory=list)  # CMU .bvh files; empty: the procedural library only
+    # Knee and elbow flips of the capture repaired (motion.cleanup); False: the clips as recorded, as the databases
+    # built before the repair were (their drape packs' keys do not name it).
+    repair_flips: bool = True
     procedural: list = field(default_factory=lambda: ["idle", "walk", "reach", "sweep", "wipe", "wave", "squat"])
     procedural_seconds: float = 4.0
     sequence_motion: str = "walk"
@@ -68,7 +71,10 @@ FIT_ONLY = ("components",)  # changes only the models fitted to the drapes: a re
 
 def _plan_key(fields: dict) -> str:
     """The build parameters' part of the key (also what a drape pack's `__plan_key__` holds)."""
-    return json.dumps({k: v for k, v in fields.items() if k not in FIT_ONLY}, sort_keys=True)
+    kept = {k: v for k, v in fields.items() if k not in FIT_ONLY}
+    if not kept.get("repair_flips", False):  # builds on the raw clips keep the key they had before the repair
+        kept.pop("repair_flips", None)
+    return json.dumps(kept, sort_keys=True)
 
 
 # A build or held-out set given a pack rewrites it after every this many drapes (a few seconds for 586 drapes),
@@ -125,7 +131,7 @@ def _motion_poses(config: BuildConfig, body: AnnyBody, shape) -> np.ndarray:
 
     poses = []
     for clip in config.clips:
-        motion = load_cmu_motion(clip, shape.heads, shape.tails)
+        motion = load_cmu_motion(clip, shape.heads, shape.tails, repair_flips=config.repair_flips)
         poses.append(motion.rotvecs[:: config.pose_every])
     for name in config.procedural:
         # procedural motions are generated at 30 fps, the rate the clips are sampled at (120 fps / 4)
@@ -462,7 +468,13 @@ def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | 
     first_pack = bool(pack_drapes and seed_drapes and Path(seed_drapes) == Path(pack_drapes)
                       and not Path(seed_drapes).exists())
     if seed_drapes and not first_pack:
-        store.unpack(seed_drapes, config.plan_key(), key["environment"])
+        try:
+            store.unpack(seed_drapes, config.plan_key(), key["environment"])
+        except ValueError as error:
+            if 'repair_flips: "absent" -> true' in str(error):  # a pack from before the repair: the raw clips
+                raise ValueError(f"{error}\n  (its drapes were made on the clips as recorded: add --raw-clips, "
+                                 "as the shipped databases need)") from None
+            raise
 
     def pack():
         store.pack(pack_drapes, config.plan_key(), key["environment"])

@@ -193,7 +193,9 @@ class DrapeStore:
         """
         pack = read_drape_pack(path)
         if pack["plan_key"] != plan_key:
-            raise ValueError(f"{path}: these drapes belong to a build with other parameters")
+            changes = key_changes(json.loads(pack["plan_key"]), json.loads(plan_key))
+            raise ValueError(f"{path}: these drapes belong to a build with other parameters (pack -> this build): "
+                             f"{'; '.join(changes)}")
         if environment is not None:
             self._check_environment(path, pack["environment"], environment)
         added = 0

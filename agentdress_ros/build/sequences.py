@@ -5,6 +5,7 @@
 
 With --pack, clips the pack already holds whole are not simulated again (unless their chunk folder is there), and
 the new pack keeps them beside the clips simulated here: the work of several machines or days adds up in one file.
+A clip simulated again (its chunk folder there) replaces its frames in the pack and keeps its place.
 A clip packed part-way (`clip_complete` false) keeps its frames in the pack until a later run simulates it whole.
 
 Each clip runs as one job (`sim.sequence.simulate_sequence`, checkpointed every second of motion) in
@@ -120,26 +121,29 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     offsets, poses, roots, velocities, clip_ids, frame_ids, names, complete = [], [], [], [], [], [], [], []
     cloth_speed, body_speed = [], []
     out = Path(out)
-    if out.is_file():  # clips packed before (simulated elsewhere or earlier) and not simulated here stay in
-        previous = load_sequence_pack(out)
-        for c, name in enumerate(previous["clips"]):
-            if str(name) in {f.name for f in folders}:
-                continue
-            rows = previous["clip"] == c
-            names.append(str(name))
-            complete.append(bool(previous["clip_complete"][c]) if "clip_complete" in previous else True)
+    previous = load_sequence_pack(out) if out.is_file() else None  # clips packed before, simulated elsewhere or earlier
+    by_name = {f.name: f for f in folders}
+    # A clip simulated again keeps its place in the pack; clips new to it follow in name order.
+    order = [str(name) for name in previous["clips"]] if previous is not None else []
+    order += [name for name in sorted(by_name) if name not in order]
+    inside = []
+    for name in order:
+        names.append(name)
+        c = len(names) - 1
+        if name not in by_name:  # kept from the previous pack
+            index = [str(n) for n in previous["clips"]].index(name)
+            rows = previous["clip"] == index
+            complete.append(bool(previous["clip_complete"][index]) if "clip_complete" in previous else True)
             offsets.extend(previous["offsets"][rows].reshape(int(rows.sum()), -1).astype(np.float64))
             for target, field in ((poses, "rotvecs"), (roots, "root_translation"), (velocities, "root_velocity"),
                                   (cloth_speed, "cloth_speed"), (body_speed, "body_speed"), (frame_ids, "frame")):
                 target.append(previous[field][rows])
-            clip_ids.append(np.full(int(rows.sum()), len(names) - 1, dtype=np.int16))
-    inside = []
-    for folder in folders:
+            clip_ids.append(np.full(int(rows.sum()), c, dtype=np.int16))
+            continue
+        folder = by_name[name]
         data = load_sequence(folder)
-        names.append(folder.name)
         planned = json.loads((folder / "sequence.json").read_text())["chunks"]
         complete.append(len(list(folder.glob("chunk_*.npz"))) >= planned)
-        c = len(names) - 1
         for f in range(0, len(data["frames"]), max(1, inside_every)):
             bodies, _ = posed_surfaces(body, garment, shape, data["rotvecs"][f:f + 1].astype(np.float64),
                                        data["root_translation"][f:f + 1].astype(np.float64))

@@ -36,7 +36,8 @@ def _continue(motion, garment, beta, start_folder, folder, settings, body, chunk
     from ..sim.sequence import _save_atomic, load_sequence, resample, sequence_key, simulate_sequence
 
     folder.mkdir(parents=True)
-    key = sequence_key(settings, beta, motion.name, len(resample(motion, settings.fps)[0]), garment)
+    rotvecs, roots = resample(motion, settings.fps)
+    key = sequence_key(settings, beta, motion.name, len(rotvecs), garment, rotvecs, roots)
     with np.load(start_folder / "chunk_0000.npz") as data:
         arrays = {name: data[name] for name in data.files}
     _save_atomic(folder / "chunk_0000.npz", **{**arrays, "key": np.array(key)})

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from .bvh import CmuClip, load_cmu_bvh
+from .cleanup import repair_limb_flips
 from .rotations import matrix_to_rotvec, rotation_between
 from .skeleton import NUM_BONES, PARENTS, Motion, bone_index, children_of, forward_kinematics, rig_default_heads_tails
 
@@ -148,11 +149,19 @@ def retarget_clip(
 
 
 def load_cmu_motion(
-    path, rest_heads=None, rest_tails=None, leg_scale: float | None = None, vertical: str = "feet"
+    path, rest_heads=None, rest_tails=None, leg_scale: float | None = None, vertical: str = "feet",
+    repair_flips: bool = True,
 ) -> Motion:
-    """Read a CMU BVH file and retarget it (default rig rest from the rig JSON when heads/tails are None)."""
+    """Read a CMU BVH file and retarget it (default rig rest from the rig JSON when heads/tails are None).
+
+    repair_flips: make knee and elbow swivels continuous where the capture flips a limb round in one frame
+    (``cleanup.repair_limb_flips``; the four CMU dance clips 05_05, 05_06, 05_08 and 05_16 have such flips, no
+    other clip is changed by it)."""
     if rest_heads is None or rest_tails is None:
         default_heads, default_tails = rig_default_heads_tails()
         rest_heads = default_heads if rest_heads is None else rest_heads
         rest_tails = default_tails if rest_tails is None else rest_tails
-    return retarget_clip(load_cmu_bvh(path), rest_heads, rest_tails, leg_scale=leg_scale, vertical=vertical)
+    motion = retarget_clip(load_cmu_bvh(path), rest_heads, rest_tails, leg_scale=leg_scale, vertical=vertical)
+    if repair_flips:
+        motion.rotvecs, _ = repair_limb_flips(motion.rotvecs, rest_heads, motion.fps)
+    return motion

@@ -16,6 +16,7 @@ same frames as an uninterrupted run (the state is exactly what the solver carrie
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import time
@@ -73,11 +74,18 @@ def _save_atomic(path: Path, **arrays) -> None:
     os.replace(partial, path)
 
 
-def sequence_key(settings: SequenceSettings, beta, motion_name: str, n_frames: int, garment) -> str:
-    """The key every chunk of a sequence carries: a resumed run continues only chunks written under the same one."""
-    return json.dumps({"settings": settings.key(), "beta": np.round(np.asarray(beta, float), 6).tolist(),
-                       "motion": motion_name, "frames": n_frames, "garment": garment.name,
-                       "vertices": garment.n_vertices})
+def sequence_key(settings: SequenceSettings, beta, motion_name: str, n_frames: int, garment, rotvecs=None,
+                 roots=None) -> str:
+    """The key every chunk of a sequence carries: a resumed run continues only chunks written under the same one.
+    With the resampled rotvecs (F, B, 3) and roots (F, 3), it also holds their digest, so a clip whose motion was
+    processed otherwise (a repaired capture flip) is not continued from chunks of the old motion."""
+    key = {"settings": settings.key(), "beta": np.round(np.asarray(beta, float), 6).tolist(), "motion": motion_name,
+           "frames": n_frames, "garment": garment.name, "vertices": garment.n_vertices}
+    if rotvecs is not None:
+        digest = hashlib.sha256(np.ascontiguousarray(rotvecs, dtype=np.float64).tobytes())
+        digest.update(np.ascontiguousarray(roots, dtype=np.float64).tobytes())
+        key["motion_digest"] = digest.hexdigest()[:16]
+    return json.dumps(key)
 
 
 def _chunks_done(folder: Path, key: str) -> int:
@@ -86,8 +94,8 @@ def _chunks_done(folder: Path, key: str) -> int:
     while (folder / f"chunk_{count:04d}.npz").is_file():
         with np.load(folder / f"chunk_{count:04d}.npz") as data:
             if str(data["key"]) != key:
-                raise ValueError(f"{folder}: chunk {count} was simulated with other settings; delete the folder "
-                                 "or choose another one")
+                raise ValueError(f"{folder}: chunk {count} was simulated with other settings or another motion; "
+                                 "delete the folder or choose another one")
         count += 1
     return count
 
@@ -112,7 +120,7 @@ def simulate_sequence(motion, garment, beta, folder, settings: SequenceSettings 
     rotvecs, roots = resample(motion, s.fps)
     n_frames = len(rotvecs)
     n_chunks = -(-n_frames // s.chunk_frames)
-    key = sequence_key(s, beta, motion.name, n_frames, garment)
+    key = sequence_key(s, beta, motion.name, n_frames, garment, rotvecs, roots)
     (folder / "sequence.json").write_text(json.dumps({"key": json.loads(key), "chunks": n_chunks}, indent=1))
     done = _chunks_done(folder, key)
     rest = garment.rest_vertices(body, shape)
