@@ -17,7 +17,7 @@ import platform
 import shlex
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +29,7 @@ from ..garment import REGION_NAMES, make_garment
 from ..garment.binding import SurfaceBinding
 from ..garment.templates import EASE, SURFACE
 from .anchors import canonical_poses, coverage, farthest_poses, uniform_anchors, weighted_kmeans_anchors
-from .jobs import DrapeJob, DrapeStore, key_changes, posed_scene, run_drape_job
+from .jobs import DrapeJob, DrapeStore, key_changes, posed_scene, read_drape_pack, run_drape_job
 from .sensitivity import joint_weights, region_dof_influence, vertex_sensitivity
 from .shape_model import fit_shape_model
 from .shapes import shape_range, shape_scale, training_shapes
@@ -471,7 +471,8 @@ def build_database(config: BuildConfig, out, workers: int = 2, scheduler: str | 
         try:
             store.unpack(seed_drapes, config.plan_key(), key["environment"])
         except ValueError as error:
-            if 'repair_flips: "absent" -> true' in str(error):  # a pack from before the repair: the raw clips
+            raw = replace(config, repair_flips=False).plan_key()
+            if config.repair_flips and read_drape_pack(seed_drapes)["plan_key"] == raw:  # made on the raw clips
                 raise ValueError(f"{error}\n  (its drapes were made on the clips as recorded: add --raw-clips, "
                                  "as the shipped databases need)") from None
             raise

@@ -124,14 +124,14 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     previous = load_sequence_pack(out) if out.is_file() else None  # clips packed before, simulated elsewhere or earlier
     by_name = {f.name: f for f in folders}
     # A clip simulated again keeps its place in the pack; clips new to it follow in name order.
-    order = [str(name) for name in previous["clips"]] if previous is not None else []
-    order += [name for name in sorted(by_name) if name not in order]
+    previous_index = {str(name): c for c, name in enumerate(previous["clips"])} if previous is not None else {}
+    order = list(previous_index) + [name for name in sorted(by_name) if name not in previous_index]
     inside = []
     for name in order:
         names.append(name)
         c = len(names) - 1
         if name not in by_name:  # kept from the previous pack
-            index = [str(n) for n in previous["clips"]].index(name)
+            index = previous_index[name]
             rows = previous["clip"] == index
             complete.append(bool(previous["clip_complete"][index]) if "clip_complete" in previous else True)
             offsets.extend(previous["offsets"][rows].reshape(int(rows.sum()), -1).astype(np.float64))

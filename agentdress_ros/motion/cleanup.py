@@ -19,33 +19,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rotations import matrix_to_rotvec, rotvec_to_matrix
+from .rotations import axis_angle_matrix, matrix_to_rotvec, rotvec_to_matrix
 from .skeleton import PARENTS, bone_index, forward_kinematics
 
 __all__ = ["LIMBS", "MAX_LIMB_SPEED", "repair_limb_flips"]
 
-# (upper, middle, end) bones of each limb: the swivel turns the limb from its upper bone down about the line from
-# the upper bone's head to the end bone's head (hip-ankle, shoulder-wrist).
-LIMBS = (
-    ("LeftUpLeg", "LeftLeg", "LeftFoot"),
-    ("RightUpLeg", "RightLeg", "RightFoot"),
-    ("LeftArm", "LeftForeArm", "LeftHand"),
-    ("RightArm", "RightForeArm", "RightHand"),
-)
+# (upper, end) bones of each limb: the swivel turns the limb from its upper bone down about the line from the upper
+# bone's head to the end bone's head (hip-ankle, shoulder-wrist), moving only the knee or elbow between them.
+LIMBS = (("LeftUpLeg", "LeftFoot"), ("RightUpLeg", "RightFoot"), ("LeftArm", "LeftHand"), ("RightArm", "RightHand"))
 # rad/s of a limb bone's local rotation above which a frame-to-frame change is a flip, not motion. In the 45 CMU
 # clips, the fastest limb motion runs at up to 120 rad/s (a knee in 05_16: 1 rad in a 120 fps frame); the flips at
 # 240-380 rad/s.
 MAX_LIMB_SPEED = 150.0
 
 
-def _axis_rotation(axis, angle) -> np.ndarray:
-    """Rotation (3, 3) by `angle` about the unit `axis` (3,)."""
-    return rotvec_to_matrix(np.asarray(axis, dtype=np.float64) * angle)
-
-
 def _best_swivel(axis, current, target) -> float:
-    """Angle phi about `axis` (3,) whose rotation C maximises trace(target^T C current): the turn about the limb's
-    line that brings the rotation `current` (3, 3) closest to `target` (3, 3)."""
+    """Angle phi about the unit `axis` (3,) whose rotation C maximises trace(target^T C current): the turn about the
+    limb's line that brings the rotation `current` (3, 3) closest to `target` (3, 3)."""
     m = current @ target.T
     along = axis @ m @ axis
     cross = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
@@ -57,9 +47,14 @@ def _extrapolate(earlier, last) -> np.ndarray:
     return last @ earlier.T @ last
 
 
-def _angle_between(a, b) -> float:
-    """Angle (rad) of the rotation taking matrix a (3, 3) to b (3, 3)."""
-    return float(np.arccos(np.clip((np.trace(a.T @ b) - 1.0) / 2.0, -1.0, 1.0)))
+def _angle_between(a, b):
+    """Angle (rad) of the rotation taking a (..., 3, 3) to b (..., 3, 3): trace(a^T b) = 1 + 2 cos(angle)."""
+    return np.arccos(np.clip((np.einsum("...ij,...ij->...", a, b) - 1.0) / 2.0, -1.0, 1.0))
+
+
+def _jumps(local, limit: float) -> np.ndarray:
+    """Frames f (F,) bool whose local rotation (F, 3, 3) differs from frame f - 1's by more than `limit` rad."""
+    return np.concatenate([[False], _angle_between(local[:-1], local[1:]) > limit])
 
 
 def repair_limb_flips(rotvecs, rest_heads, fps: float, max_speed: float = MAX_LIMB_SPEED) -> tuple:
@@ -72,25 +67,25 @@ def repair_limb_flips(rotvecs, rest_heads, fps: float, max_speed: float = MAX_LI
     local = rotvec_to_matrix(rotvecs)
     repaired = rotvecs.copy()
     report = []
-    for upper_name, _, end_name in LIMBS:
+    for upper_name, end_name in LIMBS:
         upper, end = bone_index(upper_name), bone_index(end_name)
         parent = PARENTS[upper]
+        jumps = _jumps(local[:, upper], limit)
         phi, flips, corrected = 0.0, [], 0
         before = [rotations[0, upper]] * 2  # world rotations of the upper bone in the last two repaired frames
         for f in range(len(rotvecs)):
-            if f > 0 and _angle_between(local[f - 1, upper], local[f, upper]) > limit:
+            upper_world = rotations[f, upper]
+            if jumps[f] or phi != 0.0:
                 axis = positions[f, end] - positions[f, upper]
                 axis = axis / max(np.linalg.norm(axis), 1e-12)
+            if jumps[f]:
                 expected = _extrapolate(*before)
-                best = _best_swivel(axis, rotations[f, upper], expected)
-                if _angle_between(expected, _axis_rotation(axis, best) @ rotations[f, upper]) < limit:
+                best = _best_swivel(axis, upper_world, expected)
+                if _angle_between(expected, axis_angle_matrix(axis, best) @ upper_world) < limit:
                     flips.append(f)  # a swivel explains the jump: repair it
                     phi = best if abs(best) >= 0.5 * limit else 0.0  # ~0: back where the data was, flip ended
-            upper_world = rotations[f, upper]
             if phi != 0.0:
-                axis = positions[f, end] - positions[f, upper]
-                axis = axis / max(np.linalg.norm(axis), 1e-12)
-                upper_world = _axis_rotation(axis, phi) @ upper_world
+                upper_world = axis_angle_matrix(axis, phi) @ upper_world
                 repaired[f, upper] = matrix_to_rotvec(rotations[f, parent].T @ upper_world)
                 corrected += 1
             before = [before[1], upper_world]
@@ -107,16 +102,18 @@ def _repair_end_bone(local, repaired, bone: int, limit: float) -> tuple:
     where the previous repaired frames were turning is applied from there on (K local), until a later jump brings K
     back to ~identity. The flip is a fixed turn in the parent's frame, so K carries it. -> (flip frames, frames
     corrected)."""
+    jumps = _jumps(local, limit)
     correction, flips, corrected = None, [], 0
     before = [local[0]] * 2
     for f in range(1, len(local)):
-        if _angle_between(local[f - 1], local[f]) > limit:
+        if jumps[f]:
             flips.append(f)
             correction = _extrapolate(*before) @ local[f].T
             if _angle_between(np.eye(3), correction) < 0.5 * limit:
                 correction = None
-        current = local[f] if correction is None else correction @ local[f]
+        current = local[f]
         if correction is not None:
+            current = correction @ current
             repaired[f, bone] = matrix_to_rotvec(current)
             corrected += 1
         before = [before[1], current]
