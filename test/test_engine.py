@@ -160,8 +160,8 @@ def test_body_projection_puts_every_vertex_outside_its_nearest_candidate(db, bod
     points = np.einsum("uij,uj->ui", blend[:, :, :3], reference.vertices[ids]) + blend[:, :, 3]
     rotated = np.einsum("uij,uj->ui", blend[:, :, :3], normals[ids])
     rotated /= np.linalg.norm(rotated, axis=1, keepdims=True)
-    candidates = engine._projection_candidates  # (V, K) in output rows
-    nearest = candidates[np.arange(len(off)), np.linalg.norm(off[:, None] - points[candidates], axis=2).argmin(1)]
+    local = [np.searchsorted(ids, engine.projection_candidates(v)) for v in range(len(off))]  # into points
+    nearest = np.array([c[np.linalg.norm(off[v] - points[c], axis=1).argmin()] for v, c in enumerate(local)])
     depth = ((on - points[nearest]) * rotated[nearest]).sum(axis=1)
     assert depth.min() >= config.penetration_margin - 1e-6
     moved = np.linalg.norm(on - off, axis=1) > 1e-9
@@ -171,6 +171,26 @@ def test_body_projection_puts_every_vertex_outside_its_nearest_candidate(db, bod
     assert np.abs(along).max() < 1e-6
     with pytest.raises(ValueError, match="candidates"):
         engine.fork(projection=4)
+
+
+def test_body_projection_searches_what_each_example_pose_brings_near(db, body):
+    """Each output row's candidates hold its K nearest body vertices at rest and, at every pose-model example pose,
+    the body vertex nearest to its example drape vertex there (a pose brings body parts near that rest does not)."""
+    from scipy.spatial import cKDTree
+
+    engine = Engine(db, body, EngineConfig(projection=4))
+    reference, surface = body.shape(db.beta0), body.body_vertex_ids
+    expected = [set(surface[n]) for n in cKDTree(reference.vertices[surface]).query(np.asarray(db.rest, float), k=4)[1]]
+    for pose, drape in zip(db.example_poses, db.example_drapes):
+        transforms, _ = body.pose(reference, np.asarray(pose, dtype=np.float64))
+        posed = body.posed_vertices(reference, transforms)[surface]
+        for v, n in enumerate(cKDTree(posed).query(np.asarray(drape, float))[1]):
+            expected[v].add(surface[n])
+    for v in range(db.n_vertices):
+        candidates = engine.projection_candidates(v)  # output rows: the database's order
+        assert len(candidates) == len(set(candidates))  # each searched once
+        assert set(candidates) == expected[v]
+    assert any(len(e) > 4 for e in expected)  # the example poses add candidates
 
 
 def test_examples_pose_model_reproduces_an_example_at_its_pose(db, body):

@@ -449,15 +449,20 @@ def test_the_stored_kdsm_group_round_trips(kdsm, database, tiny_model, tmp_path)
 
 def test_the_pose_model_benchmark_times_every_pose_model_on_a_real_database(database, tiny_model, tmp_path,
                                                                            capsys):
-    """`agentdress bench pose-models` (the per-frame cost of the kdsm pose model is a benchmark, not a test)."""
-    from agentdress_ros.evaluate.bench_pose_models import main
+    """`agentdress bench pose-models` (the per-frame cost of the kdsm pose model is a benchmark, not a test); an entry
+    may carry engine knobs (a whole configuration, such as the node default)."""
+    from agentdress_ros.evaluate.bench_pose_models import entry_config, main
 
+    assert entry_config("regressor,fold=false,projection=8") == {"pose_model": "regressor", "fold": False,
+                                                                 "projection": 8}
     path = store_kdsm_model(DATABASE, tmp_path / "with_kdsm.h5", tiny_model)
-    assert main(["--database", str(path), "--pose-models", "examples", "kdsm", "--frames", "6", "--passes", "2"]) == 0
+    assert main(["--database", str(path), "--pose-models", "examples", "kdsm", "examples,projection=8", "--frames",
+                 "6", "--passes", "2"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["benchmark"] == "pose-models" and report["frames"] == 6 and report["clip"] == "02_08"
     rows = report["pose_models"]
-    assert set(rows) == {"examples", "kdsm"} and rows["examples"]["synthesis_vs_examples"] == 1.0
+    assert set(rows) == {"examples", "kdsm", "examples,projection=8"}
+    assert rows["examples"]["synthesis_vs_examples"] == 1.0
     assert all(row["synthesis_ms"] > 0 and row["pose_model_ms"] > 0 for row in rows.values())
 
 

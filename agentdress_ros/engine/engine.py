@@ -282,20 +282,38 @@ class Engine:
         self.shape_report = self.set_shape(db.beta0)
 
     def _bind_projection(self, surface):
-        """config.projection > 0: each output row's `projection` nearest body vertices at rest (beta0), as indices
-        (V, K) into the U body vertices any row names, with their skinning."""
+        """config.projection > 0: the candidate body vertices of each output row, as CSR (offsets (V + 1,), local
+        indices into the U body vertices any row names, with their skinning): its `projection` nearest at rest
+        (beta0), and its nearest at each pose-model example pose (the example drape against the body posed there).
+        A pose brings body parts to the garment that none at rest is near (the arm at the torso's side, the upper
+        back under a collar): README "Speed vs accuracy" measures what the examples' candidates add."""
         k = int(self.config.projection)
         if k <= 0:
             self.projection_vertices = None
             return
-        rest = np.empty((self.n_vertices, 3))
-        rest[self.order] = np.asarray(self.db.rest, dtype=np.float64)  # output row order
-        _, nearest = cKDTree(self.reference.vertices[surface]).query(rest, k=k)
-        ids, local = np.unique(surface[np.asarray(nearest).reshape(self.n_vertices, k)], return_inverse=True)
+        db, reference = self.db, self.reference
+        _, nearest = cKDTree(reference.vertices[surface]).query(np.asarray(db.rest, dtype=np.float64), k=k)
+        columns = [np.asarray(nearest).reshape(self.n_vertices, k)]
+        for pose, drape in zip(db.example_poses, db.example_drapes):
+            transforms, _ = self.body.pose(reference, np.asarray(pose, dtype=np.float64))
+            posed = self.body.posed_vertices(reference, transforms)[surface]
+            columns.append(cKDTree(posed).query(np.asarray(drape, dtype=np.float64))[1][:, None])
+        table = np.empty((self.n_vertices, sum(c.shape[1] for c in columns)), dtype=np.int64)
+        table[self.order] = surface[np.concatenate(columns, axis=1)]  # output row order
+        table.sort(axis=1)
+        distinct = np.ones(table.shape, dtype=bool)
+        distinct[:, 1:] = table[:, 1:] != table[:, :-1]
+        ids, local = np.unique(table[distinct], return_inverse=True)
         self.projection_vertices = ids  # (U,) hm08 ids
-        self._projection_candidates = np.ascontiguousarray(local.reshape(self.n_vertices, k), dtype=np.int32)
+        self._projection_offsets = np.concatenate([[0], np.cumsum(distinct.sum(axis=1))]).astype(np.int32)
+        self._projection_candidates = np.ascontiguousarray(local, dtype=np.int32)
         self._projection_skin = (np.ascontiguousarray(self.body.skin_indices[ids]),
                                  np.ascontiguousarray(self.body.skin_weights[ids], dtype=self.dtype))
+
+    def projection_candidates(self, row: int) -> np.ndarray:
+        """The body vertices (hm08 ids) the projection searches for output row `row` (config.projection > 0)."""
+        start, stop = self._projection_offsets[row], self._projection_offsets[row + 1]
+        return self.projection_vertices[self._projection_candidates[start:stop]]
 
     def _allocate_frame_buffers(self):
         """Per-frame scratch and output buffers (allocated once per engine; a fork gets its own)."""
@@ -549,8 +567,8 @@ class Engine:
         if self.projection_vertices is not None and not bad:
             skin_with_normals(state.projection_points, state.projection_normals, *self._projection_skin,
                               self.transforms, self._projected, self._projected_normals)
-            bad = project_out_of_body(out, self._projection_candidates, self._projected, self._projected_normals,
-                                      self.config.penetration_margin)
+            bad = project_out_of_body(out, self._projection_offsets, self._projection_candidates, self._projected,
+                                      self._projected_normals, self.config.penetration_margin)
         if bad:
             self.bad_frames += 1
             return self._buffers[self._current]

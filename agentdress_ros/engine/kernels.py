@@ -356,18 +356,18 @@ def skin_with_normals(points, normals, skin_indices, skin_weights, transforms, p
 
 
 @numba.njit(cache=True, nogil=True)
-def project_out_of_body(out, candidates, posed, posed_normals, margin):
+def project_out_of_body(out, offsets, candidates, posed, posed_normals, margin):
     """In place: each garment vertex out[v] (V, 3) closer than `margin` in front of (or behind) the nearest of its
-    candidate body vertices (V, K), indices into posed, posed_normals (U, 3) (skin_with_normals), moves out along
-    that vertex's normal to `margin`. Compiled without fastmath (its isfinite checks must stay). Returns the count
-    of non-finite output vertices."""
+    candidate body vertices candidates[offsets[v]:offsets[v + 1]] (CSR, indices into posed, posed_normals (U, 3) of
+    skin_with_normals) moves out along that vertex's normal to `margin`. Compiled without fastmath (its isfinite
+    checks must stay). Returns the count of non-finite output vertices."""
     bad = 0
     for v in range(out.shape[0]):
         x, y, z = out[v, 0], out[v, 1], out[v, 2]
         best = np.inf
-        nearest = candidates[v, 0]
-        for k in range(candidates.shape[1]):
-            u = candidates[v, k]
+        nearest = candidates[offsets[v]]
+        for i in range(offsets[v], offsets[v + 1]):
+            u = candidates[i]
             dx, dy, dz = x - posed[u, 0], y - posed[u, 1], z - posed[u, 2]
             d2 = dx * dx + dy * dy + dz * dz
             if d2 < best:

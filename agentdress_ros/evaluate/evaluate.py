@@ -35,8 +35,9 @@ class Row:
     results: dict = field(default_factory=dict)
 
 
-#: Candidate body vertices of the body-projection row (EngineConfig.projection).
-PROJECTION = 16
+#: Candidate body vertices at rest of the body-projection rows (EngineConfig.projection; each vertex also searches
+#: its nearest at every example pose): the node default's.
+PROJECTION = 8
 
 
 def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, santesteban: bool = False,
@@ -90,6 +91,8 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
                 "regressor", {"pose_model": "regressor"}),
             Row("synthesis with the regressor pose model, no fold", "regressor",
                 {"pose_model": "regressor", "fold": False}),
+            Row(f"synthesis with the regressor pose model, no fold, body projection ({PROJECTION} candidates)",
+                "regressor", {"pose_model": "regressor", "fold": False, "projection": PROJECTION}),
         ]
     if recurrent:
         rows += [

@@ -63,7 +63,7 @@ PARAMETERS: dict[str, Spec] = {
                                "the default) or santesteban (Santesteban et al. 2019, from the database's "
                                "garment_model/santesteban group; one agent only, README 'Santesteban et al.'s "
                                "system')"),
-    "engine": Spec(["pose_model=examples", "tshirt:pose_model=regressor", "tshirt:fold=false",
+    "engine": Spec(["pose_model=examples", "projection=8", "tshirt:pose_model=regressor", "tshirt:fold=false",
                     "trousers:pose_model=regressor", "trousers:fold=false", "longsleeve:pose_model=regressor",
                     "longsleeve:fold=false"],
                    "EngineConfig knobs of the garments with a database, 'field=value', or 'garment:field=value' "

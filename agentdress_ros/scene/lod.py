@@ -4,7 +4,9 @@ state: no ROS, no engine).
 A tier is one line of text, so a list of them is a plain ROS string-array parameter:
 
     "near 3 synthesis"                                   full synthesis under 3 m
-    "mid 8 synthesis neighbors=2 penetration=false"      fewer anchors blended, no penetration handling, under 8 m
+    "mid 8 synthesis neighbors=2 penetration=false projection=0"
+                                                         fewer anchors blended, no penetration handling or body
+                                                         projection, under 8 m
     "far 20 skinned"                                     the garment fitted to the body and skinned, under 20 m
     "distant inf skinned every=6"                        beyond: dressed every sixth tick (15 Hz at 90 Hz)
 
@@ -42,8 +44,8 @@ class Tier:
                          self.kind] + extra)
 
 
-DEFAULT_TIER_TEXT = ("near 3 synthesis", "mid 8 synthesis neighbors=2 penetration=false", "far 20 skinned",
-                     "distant inf skinned every=6")
+DEFAULT_TIER_TEXT = ("near 3 synthesis", "mid 8 synthesis neighbors=2 penetration=false projection=0",
+                     "far 20 skinned", "distant inf skinned every=6")
 
 
 def _value(key: str, text: str):
@@ -56,8 +58,9 @@ def _value(key: str, text: str):
         value = kind(text)
     except ValueError:
         raise ValueError(f"{key}: {text!r} is not {'an integer' if kind is int else 'a number'}") from None
-    if kind is int and value < 1:
-        raise ValueError(f"{key} must be >= 1, got {value}")
+    least = 0 if key == "projection" else 1  # projection=0 turns the body projection off
+    if kind is int and value < least:
+        raise ValueError(f"{key} must be >= {least}, got {value}")
     if kind is float and not math.isfinite(value):
         raise ValueError(f"{key} must be finite, got {text!r}")
     return value
