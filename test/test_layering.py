@@ -1,8 +1,11 @@
-"""Layered garments: the outer garment is pushed out of the inner one through a fixed binding (no per-frame search)."""
+"""Layered garments: the outer garment is pushed out of the inner one through a fixed binding (no per-frame search),
+and lifted where an inner vertex passes between its vertices (the reverse binding, a local search per frame)."""
 import numpy as np
+import pytest
 import trimesh
 
-from agentdress_ros.engine.layering import bind_layers, face_vertex_normals, push_out_of_inner
+from agentdress_ros.engine.layering import (bind_layers, bind_under, face_vertex_normals, lift_over_inner,
+                                           push_out_of_inner)
 
 from .test_coverage import grid
 
@@ -70,3 +73,45 @@ def test_by_default_the_outer_garment_binds_over_the_inner_edge_and_is_pushed_wh
     assert push_out_of_inner(moved, slid, inner_faces, binding, clearance=0.004) == 1
     np.testing.assert_allclose(moved[0], [0.27, 0.0, 0.004], atol=1e-12)
     np.testing.assert_array_equal(moved[1:], outer[1:])
+
+
+def _height_over(vertices, faces, point) -> float:
+    """Height of the flat-ish sheet (V, 3), (F, 3) over the point's (x, y): the face its projection falls in."""
+    corners = vertices[faces]
+    for face, (a, b, c) in zip(faces, corners):
+        w = trimesh.triangles.points_to_barycentric(np.array([[a, b, c]]) * [1, 1, 0], np.array([[*point[:2], 0.0]]))[0]
+        if (w >= -1e-9).all():
+            return float(w @ vertices[face][:, 2])
+    raise AssertionError("no face over the point")
+
+
+def test_an_inner_vertex_through_an_outer_triangle_lifts_that_triangle_over_it():
+    """The reverse binding: inner vertices under the outer sheet (and inside its edges) are bound to its triangles;
+    one pushed through the sheet between the outer vertices lifts the triangle it is under to the clearance over
+    it, along the normals, and nothing else moves."""
+    inner, _ = grid(21, 0.5)  # the trousers, 2.5 cm edges
+    outer, outer_faces = grid(11, 1.0, z=0.01)  # the shirt 1 cm over them, 10 cm edges
+    under = bind_under(inner, outer, outer_faces)
+    assert len(under) == len(inner)  # all under the shirt, inside its edges
+    bump = 10 * 21 + 3  # an inner vertex between the outer vertices
+    inner[bump, 2] = 0.02  # 1 cm through the shirt
+    lifted = outer.copy()
+    assert lift_over_inner(lifted, outer_faces, inner, under, clearance=0.004) == 1
+    assert _height_over(lifted, outer_faces, inner[bump]) == pytest.approx(0.024, abs=1e-9)
+    moved = np.linalg.norm(lifted - outer, axis=1) > 0
+    assert 1 <= moved.sum() <= 3  # the corners of one triangle
+    np.testing.assert_array_equal(lifted[:, :2], outer[:, :2])  # along the normals (+z) only
+
+
+def test_the_reverse_binding_finds_the_triangle_an_inner_vertex_slid_under():
+    """Bound at rest, then the shirt slides 7 cm over the trousers (a walk's hip swing): the vertex that pokes
+    through lifts the triangle it now lies under, not the one closest to it at rest."""
+    inner, _ = grid(21, 0.5)
+    outer, outer_faces = grid(21, 1.0, z=0.01)  # 5 cm edges: three rings reach 15 cm
+    under = bind_under(inner, outer, outer_faces)
+    slid = outer + [0.07, 0.0, 0.0]
+    bump = 10 * 21 + 10  # the centre
+    inner[bump, 2] = 0.02
+    lifted = slid.copy()
+    assert lift_over_inner(lifted, outer_faces, inner, under, clearance=0.004) == 1
+    assert _height_over(lifted, outer_faces, inner[bump]) == pytest.approx(0.024, abs=1e-9)

@@ -8,7 +8,8 @@ included when it is published) and returns them ready for display, inner layers 
   garment's footprint over a range of poses (always_covered: computed once per set of garments, nothing per frame);
 - each garment pushed out of the garment of the next lower layer (agentdress_ros.engine.layering), through a
   binding made once per shape, between the two garments as they hang at the rest pose on that shape (vertex ids
-  and weights follow every pose: both garments follow the body);
+  and weights follow every pose: both garments follow the body), and lifted where a vertex of the lower garment
+  would pass between its vertices (the reverse binding);
 - each garment refined by `subdivision` rounds of Loop subdivision (agentdress_ros.engine.subdivision), applied
   last, after the engine's penetration handling and the layering.
 Coverage and subdivision matrices are cached per topology (a shape change reuses them), layer bindings per
@@ -21,7 +22,7 @@ import time
 import numpy as np
 
 from ..body import REFERENCE_SHAPE
-from ..engine.layering import bind_layers, push_out_of_inner
+from ..engine.layering import bind_layers, bind_under, lift_over_inner, push_out_of_inner
 from ..engine.subdivision import LoopSubdivision
 from ..garment.binding import vertex_normals
 from ..garment.coverage import MARGIN, MAX_GAP, cover_depth, faces_with_vertices, tuck_depth
@@ -80,6 +81,14 @@ def _draped_rest(model, body) -> np.ndarray:
     return out
 
 
+def _layer_bindings(outer, inner, body):
+    """(the outer garment's vertices bound to the inner garment, the inner garment's bound under the outer one),
+    both as the two hang at the rest pose."""
+    outer_rest, inner_rest = _draped_rest(outer, body), _draped_rest(inner, body)
+    return (bind_layers(outer_rest, inner_rest, inner.faces),
+            bind_under(inner_rest, outer_rest, outer.faces))
+
+
 class CoveredBodyModel(BodyModel):
     """The body without the faces garments cover; the band kept under their edges sinks `sink` (hm08 (N,) metres)
     along the rest normals of each shape."""
@@ -110,14 +119,16 @@ class DisplayModel:
 
     `coarse` is the last output before refinement (what an outer layer is pushed out of)."""
 
-    def __init__(self, base, subdivision: LoopSubdivision | None = None, inner=None, binding=None):
-        self.base, self.subdivision, self.inner, self.binding = base, subdivision, inner, binding
+    def __init__(self, base, subdivision: LoopSubdivision | None = None, inner=None, binding=None, under=None):
+        self.base, self.subdivision, self.inner, self.binding, self.under = base, subdivision, inner, binding, under
         self.name, self.kind = base.name, base.kind
         self.faces = subdivision.faces if subdivision is not None else base.faces
         self.coarse = None
         self.layer_ms = self.refine_ms = 0.0  # cost of the last frame's layering and refinement
         self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
         self._normals = None
+        self._own_normals = np.empty((base.n_vertices, 3), dtype=np.float32)
+        self._lift = np.empty(base.n_vertices, dtype=np.float32)
 
     def __getattr__(self, name):  # engine, path, garment, shape_limits, ... of the wrapped model
         if name == "base":
@@ -147,6 +158,8 @@ class DisplayModel:
             if self._normals is None or len(self._normals) != len(inner):
                 self._normals = np.empty((len(inner), 3), dtype=np.float32)
             push_out_of_inner(coarse, inner, self.inner.base.faces, self.binding, normals=self._normals)
+            if self.under is not None:
+                lift_over_inner(coarse, self.base.faces, inner, self.under, normals=self._own_normals, lift=self._lift)
         middle = time.perf_counter()
         self.coarse = coarse
         out = self.subdivision.apply(coarse) if self.subdivision is not None else coarse
@@ -172,11 +185,11 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
                              lambda: LoopSubdivision(base.faces, base.n_vertices, subdivision))
         inner = next((out[n] for n in reversed(order[:position]) if layer_of.get(n, 0) < layer_of.get(name, 0)),
                      None)
-        binding = None
+        binding = under = None
         if inner is not None:
-            binding = _cached(("layer", shape_key) + _topology_key(base) + _topology_key(inner), lambda: bind_layers(
-                _draped_rest(base, body), _draped_rest(inner.base, body), inner.base.faces), _SHAPE_CACHE)
-        out[name] = DisplayModel(base, refine, inner, binding) if refine is not None or layered else base
+            binding, under = _cached(("layer", shape_key) + _topology_key(base) + _topology_key(inner),
+                                     lambda: _layer_bindings(base, inner.base, body), _SHAPE_CACHE)
+        out[name] = DisplayModel(base, refine, inner, binding, under) if refine is not None or layered else base
     if "body" in models:
         out["body"] = _covered_body(models["body"], garments, body)
     return out

@@ -1,14 +1,14 @@
 """`python -m agentdress_ros.evaluate.display_check`: what the display shows, measured geometrically (JSON on stdout).
 
-The models are those the node runs for `make run` (T-shirt and trousers from the shipped databases, the body
-published), over the demo walk at 30 fps and a shape sweep (the demo's --shape-sweep shapes), for each display
+The models are those the node runs for `make run` (T-shirt and trousers from the shipped databases with the node
+default's engine knobs, the body published), over the demo walk at 30 fps and a shape sweep (the demo's --shape-sweep shapes), for each display
 refinement asked:
 - skin through the cloth: drawn body faces whose centre lies outside a garment where it covers the body (the
   closest cloth facing the skin's way at least `edge_band` inside the garment's open edges), with the covered
   faces left out and the kept band sunk (as published), and with every body face drawn (before);
 - gaps: body faces left out whose centre no garment lies over (no cloth facing the skin's way within 6 cm);
-- layering: the share of T-shirt vertices inside the trousers where the trousers cover them, with and without the
-  push out of the trousers;
+- layering: the share of T-shirt vertices inside the trousers where the trousers cover them, and of trousers vertices
+  outside the T-shirt where the T-shirt covers them (through its triangles), with and without the layering;
 - cost per frame (median, one thread): the engine's synthesis, the layering push, the refinement.
 """
 from __future__ import annotations
@@ -25,9 +25,11 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _models(body, databases: dict, subdivision: int, layered: bool):
+    from ..ros.params import PARAMETERS, engine_for, parse_engine
     from ..ros.runtime import GarmentSpec, SceneSpec, build_model_set
 
-    garments = tuple(GarmentSpec(g, None, str(p), (("pose_model", "examples"),)) for g, p in databases.items())
+    engine = parse_engine(PARAMETERS["engine"].default)  # the node default's knobs, per garment
+    garments = tuple(GarmentSpec(g, None, str(p), engine_for(engine, g)) for g, p in databases.items())
     layers = () if layered else tuple((g, 1) for g in databases)  # equal layers: no push
     scene = SceneSpec(garments, True, (0.5, 2 / 3, 0.5, 0.5, 0.5, 0.5), False, subdivision, layers)
     return build_model_set(scene, body)
@@ -55,7 +57,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             plain = BodyModel(body)  # before: every face drawn, nothing sunk
             every_face = plain.faces
             counts = {"drawn_poking": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0,
-                      "gaps": 0}
+                      "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0}
             timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}
             for beta in shapes:
                 model_set = build_model_set(replace(model_set.scene, beta=beta), body, model_set)
@@ -94,6 +96,10 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                     inside = surface_side(shirt, trousers, inner_faces, edge_band=0.01) < 0
                     counts["outer_inside_inner"] += int(inside.sum())
                     counts["outer_vertices"] += len(shirt)
+                    outer_faces = getattr(models["tshirt"], "base", models["tshirt"]).faces
+                    through = surface_side(trousers, shirt, outer_faces, max_gap=0.03, edge_band=0.02)
+                    counts["inner_through_outer"] += int((through > 0).sum())
+                    counts["inner_under_outer"] += int((through != 0).sum())
             n = len(frames) * len(shapes)
             report["runs"][f"subdivision={subdivision},layered={layered}"] = {
                 "frames": n,
@@ -101,6 +107,8 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                 "all_body_faces_poking_per_frame": counts["poking_all_faces"] / n if layered else None,
                 "hidden_body_faces_without_cloth_per_frame": counts["gaps"] / n if layered else None,
                 "tshirt_vertices_inside_trousers_pct": 100.0 * counts["outer_inside_inner"] / counts["outer_vertices"],
+                "trousers_vertices_through_tshirt_pct": 100.0 * counts["inner_through_outer"]
+                / max(counts["inner_under_outer"], 1),
                 "garment_vertices": {g: models[g].n_vertices for g in ("tshirt", "trousers")},
                 "body_faces_drawn": len(models["body"].faces), "body_faces": len(every_face),
                 "ms_per_garment_frame_p50": {k: float(np.median(v)) for k, v in timing.items()},
