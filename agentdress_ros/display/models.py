@@ -127,8 +127,9 @@ class DisplayModel:
         self.layer_ms = self.refine_ms = 0.0  # cost of the last frame's layering and refinement
         self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
         self._normals = None
-        self._own_normals = np.empty((base.n_vertices, 3), dtype=np.float32)
-        self._lift = np.empty(base.n_vertices, dtype=np.float32)
+        if under is not None:  # the reverse binding's buffers: this garment's normals and lift
+            self._own_normals = np.empty((base.n_vertices, 3), dtype=np.float32)
+            self._lift = np.empty(base.n_vertices, dtype=np.float32)
 
     def __getattr__(self, name):  # engine, path, garment, shape_limits, ... of the wrapped model
         if name == "base":

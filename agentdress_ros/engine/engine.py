@@ -245,9 +245,10 @@ class Engine:
         self._heads0 = np.ascontiguousarray(self.reference.heads, dtype=np.float64)
         self._phi0 = self._coefficients(db.beta0)
         surface = body.body_vertex_ids
-        _, nearest = cKDTree(self.reference.vertices[surface]).query(np.asarray(db.rest, dtype=np.float64))
+        rest_tree = cKDTree(self.reference.vertices[surface])
+        _, nearest = rest_tree.query(np.asarray(db.rest, dtype=np.float64))
         self.bound_body_vertex = surface[nearest]  # (V,) hm08 ids
-        self._bind_projection(surface)
+        self._bind_projection(surface, rest_tree)
 
         # skinned_residual databases: the fitted garment skinned to every anchor at beta0 (the shape models add to it)
         self._residual = db.shape_basis == "skinned_residual"
@@ -281,18 +282,19 @@ class Engine:
         self.bad_frames = 0
         self.shape_report = self.set_shape(db.beta0)
 
-    def _bind_projection(self, surface):
+    def _bind_projection(self, surface, rest_tree):
         """config.projection > 0: the candidate body vertices of each output row, as CSR (offsets (V + 1,), local
         indices into the U body vertices any row names, with their skinning): its `projection` nearest at rest
         (beta0), and its nearest at each pose-model example pose (the example drape against the body posed there).
         A pose brings body parts to the garment that none at rest is near (the arm at the torso's side, the upper
-        back under a collar): README "Speed vs accuracy" measures what the examples' candidates add."""
+        back under a collar): README "Speed vs accuracy" measures what the examples' candidates add. rest_tree: the
+        surface vertices at rest (beta0), as a cKDTree."""
         k = int(self.config.projection)
         if k <= 0:
             self.projection_vertices = None
             return
         db, reference = self.db, self.reference
-        _, nearest = cKDTree(reference.vertices[surface]).query(np.asarray(db.rest, dtype=np.float64), k=k)
+        _, nearest = rest_tree.query(np.asarray(db.rest, dtype=np.float64), k=k)
         columns = [np.asarray(nearest).reshape(self.n_vertices, k)]
         for pose, drape in zip(db.example_poses, db.example_drapes):
             transforms, _ = self.body.pose(reference, np.asarray(pose, dtype=np.float64))

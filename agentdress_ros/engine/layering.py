@@ -46,6 +46,7 @@ class LayerBinding:
     outer: np.ndarray  # (M,) int64 outer vertex ids
     triangles: np.ndarray  # (M, 3) int64 inner vertex ids of the carrying triangle
     barycentric: np.ndarray  # (M, 3) float32 weights, rows sum to 1
+    faces: np.ndarray  # (M,) int64 inner face id of the carrying triangle
 
     def __len__(self) -> int:
         return len(self.outer)
@@ -62,7 +63,8 @@ def bind_layers(outer, inner, inner_faces, max_distance: float = 0.1, edge_margi
     inner_faces = np.asarray(inner_faces, dtype=np.int64)
     near = cKDTree(inner).query(outer, distance_upper_bound=max_distance + 0.05)[0]
     ids = np.flatnonzero(np.isfinite(near))
-    empty = LayerBinding(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
+    empty = LayerBinding(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32),
+                         np.zeros(0, np.int64))
     if len(ids) == 0:
         return empty
     mesh = trimesh.Trimesh(inner, inner_faces, process=False)
@@ -75,7 +77,7 @@ def bind_layers(outer, inner, inner_faces, max_distance: float = 0.1, edge_margi
     if not keep.any():
         return empty
     return LayerBinding(ids[keep].astype(np.int64), triangles[keep].astype(np.int64),
-                        barycentric[keep].astype(np.float32))
+                        barycentric[keep].astype(np.float32), face_ids[keep].astype(np.int64))
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
@@ -107,25 +109,34 @@ def face_vertex_normals(vertices, faces, out):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _push(outer, inner, normals, ids, triangles, barycentric, clearance):
-    pushed = 0
-    for m in range(ids.shape[0]):
-        px = py = pz = nx = ny = nz = 0.0
-        for c in range(3):
-            j = triangles[m, c]
-            w = barycentric[m, c]
-            px += w * inner[j, 0]
-            py += w * inner[j, 1]
-            pz += w * inner[j, 2]
-            nx += w * normals[j, 0]
-            ny += w * normals[j, 1]
-            nz += w * normals[j, 2]
-        length = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if length == 0.0:
-            continue
+def _point_and_normal(points, normals, corners, weights):
+    """The point sum_c weights[c] points[corners[c]] and the unit normal interpolated likewise (zero if they
+    cancel) of one triangle."""
+    px = py = pz = nx = ny = nz = 0.0
+    for c in range(3):
+        j = corners[c]
+        w = weights[c]
+        px += w * points[j, 0]
+        py += w * points[j, 1]
+        pz += w * points[j, 2]
+        nx += w * normals[j, 0]
+        ny += w * normals[j, 1]
+        nz += w * normals[j, 2]
+    length = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if length > 0.0:
         nx /= length
         ny /= length
         nz /= length
+    return px, py, pz, nx, ny, nz
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _push(outer, inner, normals, ids, triangles, barycentric, clearance):
+    pushed = 0
+    for m in range(ids.shape[0]):
+        px, py, pz, nx, ny, nz = _point_and_normal(inner, normals, triangles[m], barycentric[m])
+        if nx == 0.0 and ny == 0.0 and nz == 0.0:
+            continue
         i = ids[m]
         h = (outer[i, 0] - px) * nx + (outer[i, 1] - py) * ny + (outer[i, 2] - pz) * nz
         if h < clearance:
@@ -171,17 +182,15 @@ def bind_under(inner, outer, outer_faces, max_distance: float = UNDER_DISTANCE,
     closest = bind_layers(inner, outer, outer_faces, max_distance, edge_margin)
     if len(closest) == 0:
         return UnderBinding(np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64))
-    mesh = trimesh.Trimesh(np.asarray(outer, dtype=np.float64), outer_faces, process=False)
-    face_of = {tuple(sorted(f)): i for i, f in enumerate(outer_faces.tolist())}
-    first = np.array([face_of[tuple(sorted(t))] for t in closest.triangles.tolist()])
-    incident = mesh.vertex_faces  # (V, max degree), -1 padded
+    # (V, max degree) faces incident to each outer vertex, -1 padded
+    incident = trimesh.Trimesh(np.asarray(outer, dtype=np.float64), outer_faces, process=False).vertex_faces
     offsets, faces = [0], []
-    for f in first:
-        found, frontier = [f], {f}
+    for first in closest.faces.tolist():
+        found, seen, frontier = [first], {first, -1}, [first]
         for _ in range(rings):
-            corners = np.unique(outer_faces[list(frontier)])
-            near = set(incident[corners].ravel().tolist()) - {-1} - set(found)
-            found += sorted(near)
+            near = sorted(set(incident[np.unique(outer_faces[frontier])].ravel().tolist()) - seen)
+            found += near
+            seen.update(near)
             frontier = near
         faces += found
         offsets.append(len(faces))
@@ -236,21 +245,11 @@ def _lift(outer, normals, outer_faces, inner, ids, offsets, candidates, clearanc
                 break
         if best < 0:
             continue
-        px = py = pz = nx = ny = nz = 0.0
-        squares = 0.0
-        for c in range(3):
-            j = outer_faces[best, c]
-            px += best_w[c] * outer[j, 0]
-            py += best_w[c] * outer[j, 1]
-            pz += best_w[c] * outer[j, 2]
-            nx += best_w[c] * normals[j, 0]
-            ny += best_w[c] * normals[j, 1]
-            nz += best_w[c] * normals[j, 2]
-            squares += best_w[c] * best_w[c]
-        length = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if length == 0.0:
+        px, py, pz, nx, ny, nz = _point_and_normal(outer, normals, outer_faces[best], best_w)
+        if nx == 0.0 and ny == 0.0 and nz == 0.0:
             continue
-        need = ((x0 - px) * nx + (x1 - py) * ny + (x2 - pz) * nz) / length + clearance
+        squares = best_w[0] * best_w[0] + best_w[1] * best_w[1] + best_w[2] * best_w[2]
+        need = (x0 - px) * nx + (x1 - py) * ny + (x2 - pz) * nz + clearance
         if need > 0.0:
             count += 1
             for c in range(3):  # the least-norm corner moves that lift the point over the vertex by `need`
@@ -278,6 +277,6 @@ def lift_over_inner(outer, outer_faces, inner, under: UnderBinding, clearance: f
     normals = np.empty_like(outer) if normals is None else normals
     lift = np.empty(len(outer), dtype=outer.dtype) if lift is None else lift
     face_vertex_normals(outer, outer_faces, normals)
-    return int(_lift(outer, normals, np.asarray(outer_faces, dtype=np.int64), inner, under.inner, under.offsets,
-                     under.faces, outer.dtype.type(clearance), UNDER_DISTANCE, lift))
+    return int(_lift(outer, normals, outer_faces, inner, under.inner, under.offsets, under.faces,
+                     outer.dtype.type(clearance), UNDER_DISTANCE, lift))
 

@@ -26,6 +26,8 @@ __all__ = ["DEFAULT_TIERS", "LodPolicy", "Tier", "Viewer", "parse_tier", "parse_
 #: Engine knobs a tier may set, with their coercion (Engine.FORK_FIELDS).
 TIER_ENGINE_FIELDS = {"neighbors": int, "penetration": bool, "projection": int, "decay": bool, "damping": float,
                       "power": float}
+#: The least value of each integer knob (projection=0 turns the body projection off).
+TIER_INT_LEAST = {"neighbors": 1, "projection": 0}
 TIER_KINDS = ("synthesis", "skinned")
 
 
@@ -58,9 +60,8 @@ def _value(key: str, text: str):
         value = kind(text)
     except ValueError:
         raise ValueError(f"{key}: {text!r} is not {'an integer' if kind is int else 'a number'}") from None
-    least = 0 if key == "projection" else 1  # projection=0 turns the body projection off
-    if kind is int and value < least:
-        raise ValueError(f"{key} must be >= {least}, got {value}")
+    if kind is int and value < TIER_INT_LEAST[key]:
+        raise ValueError(f"{key} must be >= {TIER_INT_LEAST[key]}, got {value}")
     if kind is float and not math.isfinite(value):
         raise ValueError(f"{key} must be finite, got {text!r}")
     return value
