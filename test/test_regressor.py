@@ -280,6 +280,22 @@ def test_drapes_from_rest_are_draped_like_the_anchors_in_a_spread_order(tmp_path
     np.testing.assert_array_equal(rest["frame"], source["frame"][picked])
     stats = [DrapeStore(tmp_path / "rest.npz.work" / "drapes").stats(f"rest_{f:04d}_00") for f in picked]
     assert all(s["ramp_frames"] == 3 and s["pushed_out"] == 0 for s in stats)
+    # more drapes later: 2n - 1 frames beside a pack of n settle the n - 1 halfway between, none of the n again,
+    # and the regressor trains on both packs
+    from agentdress_ros.build.regressor import training_frames, training_key
+
+    between = settle_pack(DATABASE, PACK, tmp_path / "between.npz", 5, workers=0, progress=False, drape=tiny,
+                          start="rest", skip=out)
+    halfway = load_sequence_pack(tmp_path / "between.npz")
+    last = len(source["rotvecs"]) - 1
+    assert between["drapes"] == 2
+    assert sorted(halfway["frame"].tolist()) == sorted(source["frame"][[round(last / 4), round(3 * last / 4)]].tolist())
+    settings = replace(TINY, settled_copies=1, dynamic=False)
+    both, _ = training_frames(PACK, database, settings, [out, tmp_path / "between.npz"])
+    assert len(both.poses) == 5
+    assert training_key(PACK, database, settings, [out]) == training_key(PACK, database, settings, out)
+    assert training_key(PACK, database, settings, [out, tmp_path / "between.npz"]) != training_key(
+        PACK, database, settings, out)
     with pytest.raises(ValueError, match="start must be"):
         settle_pack(DATABASE, PACK, out, 3, workers=0, progress=False, start="moving")
 

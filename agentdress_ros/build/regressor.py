@@ -141,11 +141,22 @@ def pack_data(pack: dict, db, max_offset: float | None = None) -> TrainingData:
     return TrainingData(canonical_poses(pack["rotvecs"][keep]), positions, np.array(names)[pack["clip"][keep]])
 
 
-def settled_data(path, db, max_offset: float | None) -> tuple:
-    """(static drapes of a settled pack (build.settled) as TrainingData, drapes left out by max_offset)."""
-    settled = load_sequence_pack(path)
-    data = pack_data(settled, db, max_offset)
-    return data, len(settled["offsets"]) - len(data.poses)
+def settled_paths(settled) -> list:
+    """The settled packs named by `settled`: one path, several, or None."""
+    if settled is None:
+        return []
+    return [settled] if isinstance(settled, (str, Path)) else list(settled)
+
+
+def settled_data(settled, db, max_offset: float | None) -> tuple:
+    """(static drapes of one or several settled packs (build.settled) as TrainingData, drapes left out by
+    max_offset)."""
+    parts, dropped = [], 0
+    for path in settled_paths(settled):
+        pack = load_sequence_pack(path)
+        parts.append(pack_data(pack, db, max_offset))
+        dropped += len(pack["offsets"]) - len(parts[-1].poses)
+    return join(*parts), dropped
 
 
 def join(*parts: TrainingData) -> TrainingData:
@@ -338,8 +349,8 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
 
     digest = hashlib.sha256()
     packs = [pack_path] if settings.dynamic else []
-    if settled_path and settings.settled_copies:
-        packs.append(settled_path)
+    if settings.settled_copies:
+        packs += settled_paths(settled_path)
     for path in packs:
         with np.load(path) as data:
             for name in ("coefficients", "basis", "mean", "scale", "rotvecs", "clip", "clips", "rest"):
@@ -362,7 +373,7 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
 
 
 def training_frames(pack_path, db, settings: RegressorSettings, settled_path=None) -> tuple:
-    """(frames, frames left out): the pack's frames and, with a settled pack (build.settled) and
+    """(frames, frames left out): the pack's frames and, with settled packs (build.settled) and
     settings.settled_copies, that many copies of its static drapes, each under its source clip's name (so a clip
     held out in validation takes its settled drapes with it). Without settings.dynamic, the static drapes only."""
     static, static_dropped = None, 0
@@ -424,7 +435,8 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
     bar.close()
     train_error = vertex_error(predict(regressor, frames.poses), frames.positions)
     info = {**regressor.info, "key": key, "pack": str(pack_path), "clips": sorted(set(frames.groups.tolist())),
-            **({"settled_pack": str(settled_path)} if settled_path and settings.settled_copies else {}),
+            **({"settled_pack": ", ".join(map(str, settled_paths(settled_path)))}
+               if settled_path and settings.settled_copies else {}),
             "pack_frames": int(len(frames.poses)), "frames_left_out": int(dropped),
             "example_drapes": int(len(db.example_poses)) if extra is not None else 0,
             "training_error_m": train_error, **report}
@@ -467,8 +479,8 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--database", required=True, help="database file to write the regressor into")
     parser.add_argument("--pack", required=True, help="sequence pack of the training clips (agentdress sequences)")
-    parser.add_argument("--settled", default=None, help="pack of static drapes settled from the training frames "
-                        "(agentdress settle), trained on beside the pack's frames")
+    parser.add_argument("--settled", nargs="+", default=None, help="packs of static drapes settled from the training "
+                        "frames (agentdress settle), trained on beside the pack's frames")
     parser.add_argument("--settled-copies", type=int, default=1, help="copies of the settled drapes (with --settled)")
     parser.add_argument("--static-only", action="store_true", help="train on the static drapes only (the --settled "
                         "copies and the database's beta0 drapes), not on the pack's dynamic frames")

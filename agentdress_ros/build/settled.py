@@ -111,10 +111,18 @@ def spread_order(count: int) -> np.ndarray:
     return np.argsort(reversed_bits, kind="stable")
 
 
+def settled_in(pack: dict, settled: dict, frames) -> np.ndarray:
+    """(len(frames),) bool: which of the pack's frame indices a settled pack already holds (same clip and frame)."""
+    held = {(str(settled["clips"][c]), int(f)) for c, f in zip(settled["clip"], settled["frame"])}
+    return np.array([(str(pack["clips"][pack["clip"][f]]), int(pack["frame"][f])) in held for f in frames], dtype=bool)
+
+
 def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress: bool = True,
                 components: int = 64, drape: dict | None = None, partial: bool = False, work=None,
-                start: str = "dynamic", seed: int = 0) -> dict:
+                start: str = "dynamic", seed: int = 0, skip=None) -> dict:
     """Settle `count` frames of the pack (see the module docstring), resumably; write the pack `out`; a report.
+    skip: a settled pack whose frames are left out (`count` 2n - 1 over a pack of n spread frames settles the n - 1
+    frames halfway between them: more drapes without draping the first ones again).
     work: the folder of finished drapes (default `<out>.work`); partial: drape nothing, pack the drapes finished so
     far (while another run of the same command goes on); start: "dynamic" (from the frame's own cloth) or "rest"
     (carried from the rest pose, as the anchors are) or "shaped" (each finished drape from rest in `work` again at a
@@ -131,6 +139,8 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
     pack = load_sequence_pack(pack_path)
     check_training_clips([str(c) for c in pack["clips"]])
     frames = spread_frames(pack, count)
+    if skip is not None:
+        frames = frames[~settled_in(pack, load_sequence_pack(skip), frames)]
     frames = frames[spread_order(len(frames))]
     same_garment = str(pack["garment"]) == db.garment and int(pack["garment_vertices"]) == db.n_vertices
     if start == "dynamic" and not same_garment:
@@ -205,11 +215,13 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="--start shaped: the seed of the random shapes")
     parser.add_argument("--drape", type=json.loads, default=None, help="JSON DrapeSettings overrides, e.g. "
                         "'{\"ramp_frames\": 30}' to drape from rest with a database built with the static collider")
+    parser.add_argument("--skip", default=None, help="a settled pack whose frames are left out: with --frames 2n-1 "
+                        "over its n frames, the n-1 frames halfway between them")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     report = settle_pack(args.database, args.pack, args.out, args.frames, args.workers, not args.quiet,
                          args.components, drape=args.drape, partial=args.partial, work=args.work,
-                         start=args.start, seed=args.seed)
+                         start=args.start, seed=args.seed, skip=args.skip)
     json.dump(report, sys.stdout, indent=1)
     print()
     return 0
