@@ -205,12 +205,11 @@ def _lift(outer, normals, outer_faces, inner, ids, offsets, candidates, clearanc
     vertices needed it."""
     lift[:] = 0.0
     count = 0
-    w = np.empty(3)
-    best_w = np.empty(3)
     for m in range(ids.shape[0]):
         i = ids[m]
         x0, x1, x2 = inner[i, 0], inner[i, 1], inner[i, 2]
         best = -1
+        b0 = b1 = b2 = 0.0  # the chosen triangle's barycentric weights
         for k in range(offsets[m], offsets[m + 1]):
             f = candidates[k]
             a, b, c = outer_faces[f, 0], outer_faces[f, 1], outer_faces[f, 2]
@@ -227,8 +226,8 @@ def _lift(outer, normals, outer_faces, inner, ids, offsets, candidates, clearanc
                 continue
             v = (d11 * d20 - d01 * d21) / det
             u = (d00 * d21 - d01 * d20) / det
-            w[0], w[1], w[2] = 1.0 - v - u, v, u
-            over = w[0] >= 0.0 and w[1] >= 0.0 and w[2] >= 0.0
+            w0 = 1.0 - v - u
+            over = w0 >= 0.0 and v >= 0.0 and u >= 0.0
             if over:
                 nx = e0[1] * e1[2] - e0[2] * e1[1]
                 ny = e0[2] * e1[0] - e0[0] * e1[2]
@@ -236,19 +235,18 @@ def _lift(outer, normals, outer_faces, inner, ids, offsets, candidates, clearanc
                 over = abs(d[0] * nx + d[1] * ny + d[2] * nz) < max_distance * np.sqrt(nx * nx + ny * ny + nz * nz)
             if over or k == offsets[m]:  # found; or the fallback, its projection clamped into it
                 best = f
-                for j in range(3):
-                    best_w[j] = max(w[j], 0.0)
-                total = best_w[0] + best_w[1] + best_w[2]
-                for j in range(3):
-                    best_w[j] /= total
+                b0, b1, b2 = max(w0, 0.0), max(v, 0.0), max(u, 0.0)
+                total = b0 + b1 + b2
+                b0, b1, b2 = b0 / total, b1 / total, b2 / total
             if over:
                 break
         if best < 0:
             continue
+        best_w = (b0, b1, b2)
         px, py, pz, nx, ny, nz = _point_and_normal(outer, normals, outer_faces[best], best_w)
         if nx == 0.0 and ny == 0.0 and nz == 0.0:
             continue
-        squares = best_w[0] * best_w[0] + best_w[1] * best_w[1] + best_w[2] * best_w[2]
+        squares = b0 * b0 + b1 * b1 + b2 * b2
         need = (x0 - px) * nx + (x1 - py) * ny + (x2 - pz) * nz + clearance
         if need > 0.0:
             count += 1
