@@ -420,6 +420,26 @@ def test_the_learned_model_reproduces_its_training_drapes_through_the_engine(kds
         Engine(database, body, EngineConfig(pose_model="kdsm", shape_model=False))
 
 
+def test_the_body_projection_takes_the_kdsm_pose_models_output_out_of_the_body(body, database, targets, tiny_model):
+    """The body projection runs after any pose model, one that returns world positions too: with the kdsm pose model
+    it moves only vertices near the body, and what is truly through the skin goes down."""
+    from agentdress_ros.evaluate.evaluate import InsideTest
+
+    kdsm_db = replace(database, kdsm_model=tiny_model)
+    engine = Engine(kdsm_db, body, EngineConfig(pose_model="kdsm", decay=False, projection=8))
+    plain = Engine(kdsm_db, body, EngineConfig(pose_model="kdsm", decay=False))  # no history between poses
+    truly_on = truly_off = 0.0
+    for pose in targets.poses:
+        on, off = engine.synthesize(pose).copy(), plain.synthesize(pose).copy()
+        np.testing.assert_allclose(engine.fork(projection=0).synthesize(pose), off, atol=1e-6, rtol=0)
+        moved = np.linalg.norm(on - off, axis=1) > 1e-7
+        assert 0 < moved.sum() < len(on) and np.abs(on - off).max() < 0.1  # a push out, not a jump
+        test = InsideTest(body, database.beta0, pose)
+        truly_on += test.shares(on)[2]
+        truly_off += test.shares(off)[2]
+    assert truly_on < 0.5 * truly_off
+
+
 def test_the_stored_kdsm_group_round_trips(kdsm, database, tiny_model, tmp_path):
     assert database.kdsm_model is None  # the shipped database has no KDSM group and reads as before
     path = store_kdsm_model(DATABASE, tmp_path / "with_kdsm.h5", tiny_model)

@@ -105,6 +105,8 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
             Row("kdsm pose model alone (beta0 garment, no shape model)", "kdsm",
                 {"pose_model": "kdsm", "shape_model": False}),
             Row("synthesis with the kdsm pose model", "kdsm", {"pose_model": "kdsm"}),
+            Row(f"synthesis with the kdsm pose model, body projection ({PROJECTION} candidates)", "kdsm",
+                {"pose_model": "kdsm", "projection": PROJECTION}),
         ]
     if shape_residual is not None:
         trained = ", ".join(f"{k}={v}" for k, v in sorted(shape_residual.items()) if k != "shape_residual")
