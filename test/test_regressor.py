@@ -300,6 +300,38 @@ def test_drapes_from_rest_are_draped_like_the_anchors_in_a_spread_order(tmp_path
         settle_pack(DATABASE, PACK, out, 3, workers=0, progress=False, start="moving")
 
 
+def test_novel_frames_go_where_the_training_poses_are_sparsest(tmp_path, database, body):
+    """--select novel: greedy farthest-point sampling in the regressor's standardised pose inputs. The first pick is
+    the pack frame farthest from the covered poses and their mirror images (checked by brute force), each pick is
+    no nearer than the next, a pose already covered is never picked, and the settled pack holds the picks."""
+    from agentdress_ros.build.mirror import bone_twins, mirrored_poses
+    from agentdress_ros.build.regressor import standardized_inputs
+    from agentdress_ros.build.settled import novel_frames, settle_pack
+    from agentdress_ros.engine.pose_models import canonical_poses
+
+    pack = load_sequence_pack(PACK)
+    covered = np.asarray(database.example_poses)
+    picks, distances = novel_frames(pack, database, body, covered, 4)
+    assert len(set(picks.tolist())) == 4 and np.all(np.diff(distances) <= 0)
+    inputs = lambda poses: standardized_inputs(database.regressor, canonical_poses(poses))
+    known = np.concatenate([inputs(covered), inputs(mirrored_poses(canonical_poses(covered),
+                                                                   bone_twins(body.bone_names)))])
+    candidates = inputs(pack["rotvecs"])
+    nearest = np.linalg.norm(candidates[:, None] - known[None], axis=2).min(axis=1)
+    assert picks[0] == nearest.argmax() and distances[0] == pytest.approx(nearest.max())
+    again, _ = novel_frames(pack, database, body, np.concatenate([covered, pack["rotvecs"][picks]]), 4)
+    assert not set(again.tolist()) & set(picks.tolist())
+    assert len(novel_frames(pack, database, body, pack["rotvecs"], 3)[0]) == 0  # everything covered: nothing new
+    tiny = {"ramp_frames": 3, "max_frames": 4, "min_frames": 2}
+    report = settle_pack(DATABASE, PACK, tmp_path / "novel.npz", 2, workers=0, progress=False, drape=tiny,
+                         start="rest", select="novel")
+    settled = load_sequence_pack(tmp_path / "novel.npz")
+    assert report["select"] == "novel" and report["drapes"] == 2
+    np.testing.assert_array_equal(settled["frame"], pack["frame"][picks[:2]])
+    with pytest.raises(ValueError, match="select must be"):
+        settle_pack(DATABASE, PACK, tmp_path / "x.npz", 2, workers=0, progress=False, select="random")
+
+
 def test_drapes_from_rest_of_another_garment_at_the_packs_poses(tmp_path):
     """A garment without a sequence pack of its own (the long sleeve) is draped from rest at the poses of another
     garment's pack: the pack written is the database's garment (its vertices, faces and rest), and the drapes come

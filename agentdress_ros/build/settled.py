@@ -21,6 +21,11 @@ settings, `ramp_frames` 30), then it settles. It costs about twice as much (abou
 held-out set's kind of equilibrium rather than next to a moving cloth. The drapes run in a spread order (a base-2
 radical inverse over the frames), so the drapes finished at any moment cover the clips evenly and `--partial` packs
 a usable subset of a run still going.
+
+`--select novel` picks the frames by novelty instead of spreading them: greedy farthest-point sampling in the
+database regressor's standardised pose inputs, away from the poses the `--skip` packs and the database's drapes
+already cover (and their mirror images). More drapes of the same clips spread evenly land next to poses already
+draped; these go where the training poses are sparsest, and every prefix of the order is itself such a pick.
 """
 from __future__ import annotations
 
@@ -117,12 +122,49 @@ def settled_in(pack: dict, settled: dict, frames) -> np.ndarray:
     return np.array([(str(pack["clips"][pack["clip"][f]]), int(pack["frame"][f])) in held for f in frames], dtype=bool)
 
 
+def novel_frames(pack: dict, db, body, covered, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(`count` pack frame indices, their distances when picked): greedy farthest-point sampling in the database
+    regressor's standardised pose inputs. Each pick is the pack frame farthest from every pose a drape already
+    covers - the `covered` canonical poses (C, B, 3), the picks before it, and the mirror images of both (the
+    regressor trains on those too) - so new drapes go where the training poses are sparsest."""
+    from scipy.spatial import cKDTree
+
+    from ..engine.pose_models import canonical_poses
+    from .mirror import bone_twins, mirrored_poses
+    from .regressor import standardized_inputs
+
+    if db.regressor is None:
+        raise ValueError("--select novel measures novelty in the database regressor's inputs, and this database "
+                         "has no pose_model/regressor")
+    twins = bone_twins(body.bone_names)
+
+    def inputs(poses):  # (F, I) of the poses and (F, I) of their mirror images
+        poses = canonical_poses(np.asarray(poses, dtype=np.float64))
+        return (standardized_inputs(db.regressor, poses),
+                standardized_inputs(db.regressor, canonical_poses(mirrored_poses(poses, twins))))
+
+    candidates, candidates_mirrored = inputs(pack["rotvecs"])
+    nearest = cKDTree(np.concatenate(inputs(covered))).query(candidates)[0]
+    picks, distances = [], []
+    for _ in range(min(count, len(candidates))):
+        f = int(np.argmax(nearest))
+        if nearest[f] <= 0.0:  # every frame left is a pose already draped
+            break
+        picks.append(f)
+        distances.append(float(nearest[f]))
+        for point in (candidates[f], candidates_mirrored[f]):
+            nearest = np.minimum(nearest, np.linalg.norm(candidates - point, axis=1))
+    return np.array(picks, dtype=np.int64), np.array(distances)
+
+
 def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress: bool = True,
                 components: int = 64, drape: dict | None = None, partial: bool = False, work=None,
-                start: str = "dynamic", seed: int = 0, skip=None) -> dict:
+                start: str = "dynamic", seed: int = 0, skip=None, select: str = "spread") -> dict:
     """Settle `count` frames of the pack (see the module docstring), resumably; write the pack `out`; a report.
-    skip: a settled pack whose frames are left out (`count` 2n - 1 over a pack of n spread frames settles the n - 1
-    frames halfway between them: more drapes without draping the first ones again).
+    skip: settled packs (a path or several) whose frames are left out (`count` 2n - 1 over a pack of n spread frames
+    settles the n - 1 frames halfway between them: more drapes without draping the first ones again).
+    select: "spread" (frames evenly over the pack, in spread_order) or "novel" (novel_frames: the `count` frames
+    farthest from the poses the skipped packs and the database's examples already cover, in the order picked).
     work: the folder of finished drapes (default `<out>.work`); partial: drape nothing, pack the drapes finished so
     far (while another run of the same command goes on); start: "dynamic" (from the frame's own cloth) or "rest"
     (carried from the rest pose, as the anchors are) or "shaped" (each finished drape from rest in `work` again at a
@@ -132,16 +174,25 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
     from ..kdsm.training import spread_frames
     from .builder import run_jobs
     from .jobs import DrapeStore
+    from .regressor import settled_paths
     from .sequences import check_training_clips, load_sequence_pack, rest_frame_offsets, write_pack
 
     db = read_database(db_path)
     body = AnnyBody()
     pack = load_sequence_pack(pack_path)
     check_training_clips([str(c) for c in pack["clips"]])
-    frames = spread_frames(pack, count)
-    if skip is not None:
-        frames = frames[~settled_in(pack, load_sequence_pack(skip), frames)]
-    frames = frames[spread_order(len(frames))]
+    skipped = [load_sequence_pack(path) for path in settled_paths(skip)] if skip is not None else []
+    novelty = None
+    if select == "novel":
+        covered = np.concatenate([np.asarray(db.example_poses)] + [p["rotvecs"] for p in skipped])
+        frames, novelty = novel_frames(pack, db, body, covered, count)
+    elif select == "spread":
+        frames = spread_frames(pack, count)
+        for settled in skipped:
+            frames = frames[~settled_in(pack, settled, frames)]
+        frames = frames[spread_order(len(frames))]
+    else:
+        raise ValueError(f"select must be 'spread' or 'novel', got {select!r}")
     same_garment = str(pack["garment"]) == db.garment and int(pack["garment_vertices"]) == db.n_vertices
     if start == "dynamic" and not same_garment:
         raise ValueError(f"{pack_path}: its frames are the {pack['garment']} at {int(pack['garment_vertices'])} "
@@ -193,7 +244,9 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
             f"moved_from_{start}_mean_m": float(np.mean(moved)),
             "inside_true_mean": float(np.mean([s["inside_true_count"] for s in stats])),
             "inside_overlap_mean": float(np.mean([s["inside_overlap_count"] for s in stats])),
-            "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean())}
+            "components": k, "explained_variance": explained, "rest_frame_error_mean_m": float(error.mean()),
+            "select": select, **({} if novelty is None else {"novelty_first_last": [float(novelty[0]),
+                                                                                  float(novelty[-1])]})}
 
 
 def main(argv=None) -> int:
@@ -215,13 +268,17 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="--start shaped: the seed of the random shapes")
     parser.add_argument("--drape", type=json.loads, default=None, help="JSON DrapeSettings overrides, e.g. "
                         "'{\"ramp_frames\": 30}' to drape from rest with a database built with the static collider")
-    parser.add_argument("--skip", default=None, help="a settled pack whose frames are left out: with --frames 2n-1 "
-                        "over its n frames, the n-1 frames halfway between them")
+    parser.add_argument("--skip", nargs="+", default=None, help="settled packs whose frames are left out: with "
+                        "--frames 2n-1 over a pack of n frames, the n-1 frames halfway between them")
+    parser.add_argument("--select", choices=["spread", "novel"], default="spread",
+                        help="spread: frames evenly over the pack; novel: the frames farthest, in the database "
+                        "regressor's pose inputs, from the poses --skip's packs and the database's drapes cover")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     report = settle_pack(args.database, args.pack, args.out, args.frames, args.workers, not args.quiet,
                          args.components, drape=args.drape, partial=args.partial, work=args.work,
-                         start=args.start, seed=args.seed, skip=args.skip)
+                         start=args.start, seed=args.seed, skip=args.skip,
+                         select=args.select)
     json.dump(report, sys.stdout, indent=1)
     print()
     return 0
