@@ -47,6 +47,14 @@ def mirrored_poses(poses: np.ndarray, twins: np.ndarray) -> np.ndarray:
     return np.asarray(poses)[:, twins] * ROTATION_REFLECTION
 
 
+def mirrored_canonical_poses(poses: np.ndarray, twins: np.ndarray) -> np.ndarray:
+    """(F, B, 3) the mirror images of canonical poses (F, B, 3), canonical again: the poses the regressor trains its
+    mirror images on."""
+    from ..engine.pose_models import canonical_poses
+
+    return canonical_poses(mirrored_poses(poses, twins))
+
+
 def garment_mirror(rest: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Where each rest vertex's mirror image lies on the rest garment (V, 3) / faces (T, 3): (corners (V, 3), the
     vertices of the triangle holding it, barycentric weights (V, 3), largest distance (m) from the image to it)."""
@@ -86,8 +94,7 @@ class Mirror:
 
     def __call__(self, data):
         """Mirror images of TrainingData, each under its source's group (held out with its clip)."""
-        from ..engine.pose_models import canonical_poses
         from .regressor import TrainingData
 
-        return TrainingData(canonical_poses(mirrored_poses(data.poses, self.twins)),
+        return TrainingData(mirrored_canonical_poses(data.poses, self.twins),
                             mirrored_positions(data.positions, self.corners, self.weights), data.groups)

@@ -130,7 +130,7 @@ def novel_frames(pack: dict, db, body, covered, count: int) -> tuple[np.ndarray,
     from scipy.spatial import cKDTree
 
     from ..engine.pose_models import canonical_poses
-    from .mirror import bone_twins, mirrored_poses
+    from .mirror import bone_twins, mirrored_canonical_poses
     from .regressor import standardized_inputs
 
     if db.regressor is None:
@@ -141,7 +141,7 @@ def novel_frames(pack: dict, db, body, covered, count: int) -> tuple[np.ndarray,
     def inputs(poses):  # (F, I) of the poses and (F, I) of their mirror images
         poses = canonical_poses(np.asarray(poses, dtype=np.float64))
         return (standardized_inputs(db.regressor, poses),
-                standardized_inputs(db.regressor, canonical_poses(mirrored_poses(poses, twins))))
+                standardized_inputs(db.regressor, mirrored_canonical_poses(poses, twins)))
 
     candidates, candidates_mirrored = inputs(pack["rotvecs"])
     nearest = cKDTree(np.concatenate(inputs(covered))).query(candidates)[0]
@@ -181,7 +181,7 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
     body = AnnyBody()
     pack = load_sequence_pack(pack_path)
     check_training_clips([str(c) for c in pack["clips"]])
-    skipped = [load_sequence_pack(path) for path in settled_paths(skip)] if skip is not None else []
+    skipped = [load_sequence_pack(path) for path in settled_paths(skip)]
     novelty = None
     if select == "novel":
         covered = np.concatenate([np.asarray(db.example_poses)] + [p["rotvecs"] for p in skipped])
@@ -277,8 +277,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     report = settle_pack(args.database, args.pack, args.out, args.frames, args.workers, not args.quiet,
                          args.components, drape=args.drape, partial=args.partial, work=args.work,
-                         start=args.start, seed=args.seed, skip=args.skip,
-                         select=args.select)
+                         start=args.start, seed=args.seed, skip=args.skip, select=args.select)
     json.dump(report, sys.stdout, indent=1)
     print()
     return 0
