@@ -73,11 +73,11 @@ bench-node: setup
 # ground truth.
 regressor: setup-test
 	$(BIN)/agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz \
-		--settled data/tshirt_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5
+		--settled data/tshirt_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5 --parts
 	$(BIN)/agentdress regressor --database data/trousers_default.h5 --pack data/trousers_sequences.npz \
-		--settled data/trousers_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5
+		--settled data/trousers_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5 --parts
 	$(BIN)/agentdress regressor --database data/longsleeve_default.h5 --pack data/tshirt_sequences.npz \
-		--settled data/longsleeve_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5
+		--settled data/longsleeve_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5 --parts
 	$(BIN)/agentdress recurrent --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 	$(BIN)/agentdress recurrent --database data/trousers_default.h5 --pack data/trousers_sequences.npz
 	$(BIN)/agentdress santesteban --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz

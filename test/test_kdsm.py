@@ -13,7 +13,7 @@ from agentdress_ros.body.kinematics import forward_kinematics, linear_blend_skin
 from agentdress_ros.build.sequences import load_sequence_pack
 from agentdress_ros.build.regressor import RegressorSettings, pose_dofs, predict
 from agentdress_ros.engine import Engine, EngineConfig
-from agentdress_ros.engine.database import KDSM_ARRAYS, DatabaseError, KdsmModel, read_database
+from agentdress_ros.engine.database import KDSM_ARRAYS, DatabaseError, KdsmModel, as_stored, read_database
 from agentdress_ros.garment.binding import vertex_normals
 from agentdress_ros.kdsm.embedding import KdsmPoser, embed, unembed
 from agentdress_ros.kdsm.inverse import candidate_parents, graph_laplacian, harmonic_fill, mesh_edges, prune_candidates
@@ -449,7 +449,7 @@ def test_the_stored_kdsm_group_round_trips(kdsm, database, tiny_model, tmp_path)
     assert loaded.kdsm.spacing == kdsm.spacing and loaded.kdsm.settings == kdsm.settings
     assert loaded.kdsm.info == json.loads(json.dumps(kdsm.info)) and loaded.info == tiny_model.info
     np.testing.assert_array_equal(loaded.rest, database.rest)
-    reg, stored = loaded.regressor, tiny_model.regressor
+    reg, stored = loaded.regressor, as_stored(tiny_model.regressor)
     for got, want in zip(reg.weights + reg.biases, stored.weights + stored.biases):
         np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(reg.basis, stored.basis)

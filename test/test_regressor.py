@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 
 from agentdress_ros.build.regressor import (RegressorSettings, TrainingData, add_network_arguments, clip_folds,
-                                            example_data, fit, network_settings, pack_data, pose_dofs, predict,
-                                            store_regressor, train_database_regressor, validate_example_copies,
-                                            vertex_error)
+                                            coefficients_of, example_data, fit, model_inputs, network_settings,
+                                            pack_data, pose_dofs, predict, region_parts, store_regressor,
+                                            train_database_regressor, validate_example_copies, vertex_error)
 from agentdress_ros.build.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
+from agentdress_ros.engine.database import as_stored
 from agentdress_ros.engine.engine import permute_vertices, select_database
-from agentdress_ros.engine.pose_models import INPUT_CLIP
+from agentdress_ros.engine.pose_models import INPUT_CLIP, RegressorDecoder
 
 ROOT = Path(__file__).resolve().parents[1]
 DATABASE = ROOT / "data" / "tshirt_default.h5"
@@ -73,6 +74,63 @@ def test_an_ensemble_is_stored_as_one_mlp_whose_output_is_the_members_mean(datab
                                + regressor.mean, atol=2e-5)
 
 
+def test_region_parts_cover_the_garment_with_blend_weights_summing_to_one(database):
+    parts = region_parts(database)
+    total = np.zeros(database.n_vertices)
+    for part in parts:
+        total[part.vertices] += part.blend
+        assert (part.blend > 0).all() and len(part.vertices) >= 20
+    np.testing.assert_allclose(total, 1.0, atol=1e-12)
+    # the T-shirt's two forearm regions hold 5-6 vertices each: too few for a model, their vertices blend the rest
+    assert len(parts) == len(database.region_names) - 2
+    torso = np.asarray(database.region_dof)[database.region_names.index("torso")]
+    np.testing.assert_array_equal(parts[0].dofs, np.flatnonzero(torso > 0))
+    # a region left out whose vertex belongs to no other joins its nearest covered vertex's parts
+    regions = np.array(database.regions)
+    lonely = int(np.flatnonzero(regions[:, 1] > 0)[0])
+    regions[lonely] = 0.0
+    regions[lonely, 2] = 1.0  # only in the left forearm, which keeps too few vertices
+    total = np.zeros(database.n_vertices)
+    for part in region_parts(replace(database, regions=regions)):
+        total[part.vertices] += part.blend
+    assert total[lonely] == pytest.approx(1.0)
+
+
+def test_a_parts_regressor_is_its_parts_blended_and_the_engine_skips_the_zeros(body, database, frames):
+    """One Regressor equal to sum_p blend_p member_p, each member fitted on its region's vertices and dofs; the
+    engine's decoder finds the blocks again from the zeros and gives the same garment, and forks keep their own
+    buffers."""
+    settings = replace(TINY, parts=True, ensemble=2)
+    parts = model_inputs(database, settings)
+    regressor, _ = fit(frames, parts, settings)
+    assert regressor.info["settings"]["parts"] and len(regressor.info["parts"]) == len(parts)
+    poses = frames.poses[:4]
+    expected = np.zeros((len(poses), database.n_vertices, 3))
+    for part in parts:
+        member, _ = fit(TrainingData(frames.poses, frames.positions[:, part.vertices], frames.groups), part.dofs,
+                        replace(settings, parts=False))
+        expected[:, part.vertices] += part.blend[None, :, None] * predict(member, poses)
+    np.testing.assert_allclose(predict(regressor, poses), expected, atol=1e-6)  # float32 arrays, blended
+    decoder = RegressorDecoder(regressor)
+    assert len(decoder.blocks) == len(parts)
+    for pose, want in zip(poses, expected):
+        np.testing.assert_allclose(decoder.decode(pose).T, want, atol=1e-6)
+    twin = decoder.fork()
+    mine = decoder.decode(poses[1])
+    np.testing.assert_allclose(twin.decode(poses[0]).T, expected[0], atol=1e-6)
+    np.testing.assert_allclose(mine.T, expected[1], atol=1e-6)  # the twin's frame left this one's buffers alone
+    # the coefficients that restore a garment are found by least squares, the parts' bases overlapping
+    coefficients = coefficients_of(regressor, expected)
+    restored = coefficients @ regressor.basis.reshape(len(regressor.basis), -1) + regressor.mean.reshape(-1)
+    np.testing.assert_allclose(restored.reshape(expected.shape), expected, atol=1e-6)
+    # through the database file (float16 weights) and the engine: the same to well under a millimetre
+    engine = Engine(replace(database, regressor=as_stored(regressor)), body,
+                    EngineConfig(pose_model="regressor", shape_model=False, dtype="float32"))
+    out = np.empty((database.n_vertices, 3))
+    out[engine.order] = engine.pose_model.evaluate(poses[1], np.zeros(3), None).T
+    assert np.abs(out - expected[1]).max() < 2e-4
+
+
 def test_inputs_that_training_held_still_are_dropped_and_far_inputs_clipped(database, frames, trained):
     """A dof (nearly) constant in the training frames is not an input; a pose far outside the training range gives
     the prediction at INPUT_CLIP standard deviations, not an extrapolation (a retarget to another body moves dofs
@@ -125,16 +183,19 @@ def test_database_round_trip_select_and_permute(body, tmp_path, database, traine
     regressor = trained[0]
     path = write_database(tmp_path / "db.h5", replace(database, recurrent=None, regressor=regressor))
     back = read_database(path).regressor
-    for a, b in zip((regressor.dofs, regressor.mean, regressor.basis, *regressor.weights, *regressor.biases),
+    stored = as_stored(regressor)  # weights and basis kept as float16
+    for a, b in zip((stored.dofs, stored.mean, stored.basis, *stored.weights, *stored.biases),
                     (back.dofs, back.mean, back.basis, *back.weights, *back.biases)):
+        assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
     assert back.activation == regressor.activation and back.info == regressor.info
     db = read_database(path)
     ids = np.arange(0, db.n_vertices, 7)
     sub = select_database(db, EngineConfig(vertices=ids))
-    np.testing.assert_array_equal(sub.regressor.basis, regressor.basis[:, ids])
+    np.testing.assert_array_equal(sub.regressor.basis, back.basis[:, ids])
     order = np.random.default_rng(0).permutation(db.n_vertices)
     np.testing.assert_array_equal(permute_vertices(db, order).regressor.mean, regressor.mean[order])
+    np.testing.assert_array_equal(permute_vertices(db, order).regressor.basis, back.basis[:, order])
     # a level of detail outputs the full engine's vertices (pose model alone, no blend across vertices)
     pose = db.anchor_poses[1].astype(np.float64) * 0.7
     config = dict(pose_model="regressor", shape_model=False, dtype="float64")
@@ -394,7 +455,10 @@ def test_command_writes_the_group_once_and_no_learning_library_at_run_time(tmp_p
     assert first["validation_error_m"] > 0 and len(first["folds"]) == 2
     again = train_database_regressor(path, pack, TINY, folds=2, progress=False)
     assert "skipped" in again and again["key"] == first["key"]
-    store_regressor(path, read_database(path).regressor)  # rewriting the group keeps the file valid
+    size = Path(path).stat().st_size
+    for _ in range(3):  # rewriting the group keeps the file valid, and no bigger: the old bytes are not kept
+        store_regressor(path, read_database(path).regressor)
+    assert Path(path).stat().st_size <= size
     script = (f"import sys, numpy as np; from agentdress_ros.engine import load_engine, EngineConfig; "
               f"e = load_engine({str(path)!r}, EngineConfig(pose_model='regressor')); "
               f"out = e.synthesize(np.zeros((31, 3))); assert np.isfinite(out).all(); "

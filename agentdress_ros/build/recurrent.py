@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.database import Recurrent, read_database, write_recurrent
-from .regressor import kept_frames, mlp_outputs, pack_data, standardized_inputs, store_in_database
+from .regressor import coefficients_of, kept_frames, mlp_outputs, pack_data, standardized_inputs, store_in_database
 
 
 @dataclass(frozen=True)
@@ -62,14 +62,13 @@ def sequences(pack: dict, db, max_offset: float) -> list[tuple[np.ndarray, np.nd
 def training_arrays(db, runs, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(x (N, window, I), static outputs (N, window, G), targets (N, window, G)): windows every window/2 frames."""
     reg = db.regressor
-    unit = reg.basis.reshape(len(reg.basis), -1).astype(np.float64)
     xs, statics, targets = [], [], []
     for poses, positions in runs:
         if len(poses) < window:
             continue
         x = standardized_inputs(reg, poses)
         static = mlp_outputs(reg, poses)
-        coefficients = (positions.reshape(len(positions), -1) - reg.mean.reshape(-1)) @ unit.T
+        coefficients = coefficients_of(reg, positions)
         target = (coefficients - reg.coefficient_mean) / reg.coefficient_scale
         for start in range(0, len(poses) - window + 1, window // 2):
             xs.append(x[start:start + window])

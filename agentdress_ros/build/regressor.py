@@ -56,6 +56,18 @@ class RegressorSettings:
     ensemble: int = 1  # MLPs trained from seeds seed, seed+1, ... on the same data and stored merged into one wider MLP
     # whose output is their mean (exact; README "Drapes from rest along the training clips": 5 beat 1 by 2-3 %)
     mirror: bool = False  # train on the frames' left-right mirror images too (build.mirror): twice the poses
+    parts: bool = False  # one MLP and PCA per garment region (region_parts), on that region's own pose dofs, blended
+    # by the region weights: a pose the training clips never combined (this arm up, that leg out) is then made of
+    # parts each of which has seen its own (README "Region parts")
+
+
+@dataclass(frozen=True)
+class Part:
+    """One region's share of a parts regressor (RegressorSettings.parts)."""
+
+    vertices: np.ndarray  # (n,) garment vertices the part predicts
+    blend: np.ndarray  # (n,) its weight at each of them; every vertex's weights over the parts sum to 1
+    dofs: np.ndarray  # (I_p,) the pose dofs it sees
 
 
 @dataclass
@@ -79,6 +91,31 @@ def pose_dofs(db, features: str) -> np.ndarray:
     if features == "sensitive":
         return distance_metric(db.region_dof, n_bones, 1e-6)[0].astype(np.int32)
     raise ValueError(f"features must be one of {FEATURES}, got {features!r}")
+
+
+def region_parts(db, min_vertices: int = 20) -> tuple:
+    """The Parts of a parts regressor: one per garment region holding at least min_vertices vertices (the database's
+    region weights, renormalised over those regions; a vertex only in smaller regions joins the part of its nearest
+    covered vertex at rest), each seeing the pose dofs its region's sensitivity names (region_dof > 0)."""
+    from scipy.spatial import cKDTree
+
+    weights = np.asarray(db.regions, dtype=np.float64)
+    kept = np.flatnonzero((weights > 0).sum(axis=0) >= min_vertices)
+    weights = weights[:, kept]
+    covered = weights.sum(axis=1) > 0
+    if not covered.all():
+        rest = np.asarray(db.rest, dtype=np.float64)
+        _, nearest = cKDTree(rest[covered]).query(rest[~covered])
+        weights[~covered] = weights[np.flatnonzero(covered)[nearest]]
+    weights /= weights.sum(axis=1, keepdims=True)
+    region_dof = np.asarray(db.region_dof)
+    return tuple(Part(np.flatnonzero(weights[:, j] > 0).astype(np.int64), weights[weights[:, j] > 0, j],
+                      np.flatnonzero(region_dof[r] > 0).astype(np.int32)) for j, r in enumerate(kept))
+
+
+def model_inputs(db, settings: RegressorSettings):
+    """What fit() maps from: the pose dofs (pose_dofs), or with settings.parts the region Parts."""
+    return region_parts(db) if settings.parts else pose_dofs(db, settings.features)
 
 
 def example_data(db) -> TrainingData:
@@ -163,8 +200,14 @@ def join(*parts: TrainingData) -> TrainingData:
     return TrainingData(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("poses", "positions", "groups")))
 
 
-def fit(data: TrainingData, dofs: np.ndarray, settings: RegressorSettings, progress=None):
-    """(Regressor, sklearn MLPRegressor) trained on `data`. Deterministic given settings.seed (one BLAS thread)."""
+def fit(data: TrainingData, dofs, settings: RegressorSettings, progress=None):
+    """(Regressor, sklearn MLPRegressors) trained on `data`, from the pose dofs `dofs` (I,), or per part for a tuple
+    of Parts (model_inputs). Deterministic given settings.seed (one BLAS thread)."""
+    if isinstance(dofs, tuple) and dofs and isinstance(dofs[0], Part):
+        members = [fit(TrainingData(data.poses, data.positions[:, part.vertices], data.groups), part.dofs,
+                       replace(settings, parts=False)) for part in dofs]
+        regressor = merged_parts([m[0] for m in members], dofs, data.positions.shape[1])
+        return replace(regressor, info={**regressor.info, "settings": asdict(settings)}), [m[1] for m in members]
     import warnings
 
     from sklearn.exceptions import ConvergenceWarning
@@ -227,6 +270,52 @@ def merged_layers(weights: list, biases: list) -> tuple[list, list]:
     return merged_w, merged_b
 
 
+def merged_parts(members: list, parts: tuple, n_vertices: int) -> Regressor:
+    """One Regressor (engine.database) exactly equal to the parts' blend sum_p blend_p(v) member_p(v): the members'
+    inputs gathered into the union of their dofs, their hidden and output units side by side (the first layer
+    reads only each member's own dofs, deeper layers block-diagonal), each member's basis and mean scattered onto its
+    vertices times its blend weight. Stored and evaluated as any regressor; the engine's decoder finds the blocks
+    again from the zeros (engine.pose_models.RegressorDecoder) and skips them."""
+    from scipy.linalg import block_diag
+
+    dofs = np.unique(np.concatenate([m.dofs for m in members]))
+    input_mean, input_scale = np.zeros(len(dofs), np.float32), np.ones(len(dofs), np.float32)
+    first = []
+    for m in members:
+        rows = np.searchsorted(dofs, m.dofs)
+        input_mean[rows], input_scale[rows] = m.input_mean, m.input_scale  # the same frames: the same statistics
+        w = np.zeros((len(dofs), m.weights[0].shape[1]), np.float32)
+        w[rows] = m.weights[0]
+        first.append(w)
+    weights = [np.concatenate(first, axis=1)] + [block_diag(*[m.weights[n] for m in members]).astype(np.float32)
+                                                 for n in range(1, len(members[0].weights))]
+    biases = [np.concatenate([m.biases[n] for m in members]) for n in range(len(members[0].biases))]
+    mean = np.zeros((n_vertices, 3), np.float32)
+    basis = []
+    for m, part in zip(members, parts):
+        blend = part.blend.astype(np.float32)[:, None]
+        mean[part.vertices] += blend * m.mean
+        scattered = np.zeros((len(m.basis), n_vertices, 3), np.float32)
+        scattered[:, part.vertices] = m.basis * blend[None]
+        basis.append(scattered)
+    info = {"parts": [{"vertices": int(len(part.vertices)), "dofs": int(len(m.dofs)), "components": int(len(m.basis))}
+                      for m, part in zip(members, parts)],
+            "frames": members[0].info["frames"], "iterations": max(m.info["iterations"] for m in members)}
+    return Regressor(dofs=dofs.astype(np.int32), input_mean=input_mean, input_scale=input_scale,
+                     weights=tuple(weights), biases=tuple(biases),
+                     coefficient_mean=np.concatenate([m.coefficient_mean for m in members]),
+                     coefficient_scale=np.concatenate([m.coefficient_scale for m in members]), mean=mean,
+                     basis=np.concatenate(basis), activation=members[0].activation, info=info)
+
+
+def coefficients_of(regressor: Regressor, positions: np.ndarray) -> np.ndarray:
+    """(F, G) the PCA coefficients that best restore positions (F, V, 3) (least squares: a parts regressor's
+    basis rows overlap where the parts blend; a single PCA's are orthonormal, and this is its projection)."""
+    unit = regressor.basis.reshape(len(regressor.basis), -1).astype(np.float64)
+    centred = positions.reshape(len(positions), -1) - regressor.mean.reshape(-1)
+    return np.linalg.solve(unit @ unit.T, unit @ centred.T).T
+
+
 def standardized_inputs(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
     """(F, I) the MLP's standardised inputs for canonical poses (F, B, 3) (or input vectors (F, D))."""
     return standardized(poses.reshape(len(poses), -1)[:, regressor.dofs], regressor.input_mean,
@@ -286,9 +375,8 @@ def cross_validate(frames: TrainingData, extra: TrainingData | None, dofs, setti
         regressor, _ = fit(train, dofs, settings)
         truth = frames.positions[test]
         errors.append(vertex_error(predict(regressor, frames.poses[test]), truth))
-        basis = regressor.basis.reshape(len(regressor.basis), -1).astype(np.float64)
-        centred = truth.reshape(len(truth), -1) - regressor.mean.reshape(-1)
-        restored = (centred @ basis.T) @ basis + regressor.mean.reshape(-1)
+        restored = coefficients_of(regressor, truth) @ regressor.basis.reshape(len(regressor.basis), -1) + \
+            regressor.mean.reshape(-1)
         pca_errors.append(vertex_error(restored.reshape(truth.shape), truth))
         mean_errors.append(vertex_error(regressor.mean[None].astype(np.float64), truth))
         weights.append(int(test.sum()))
@@ -368,6 +456,8 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
         fields.pop("ensemble")
     if not settings.mirror:  # nor those trained without mirror images
         fields.pop("mirror")
+    if not settings.parts:  # nor single regressors of the whole garment
+        fields.pop("parts")
     digest.update(json.dumps({**fields, "sklearn": sklearn.__version__, "inputs": inputs}, sort_keys=True).encode())
     return digest.hexdigest()[:16]
 
@@ -398,12 +488,27 @@ def store_in_database(path, write, source=None) -> Path:
 
     path = Path(path)
     partial = path.with_name(path.name + ".partial")
-    shutil.copyfile(source if source is not None else path, partial)
-    with h5py.File(partial, "r+") as h5:
+    changed = path.with_name(path.name + ".changed")
+    shutil.copyfile(source if source is not None else path, changed)
+    with h5py.File(changed, "r+") as h5:
         write(h5)
+    compact_copy(changed, partial)
+    changed.unlink()
     read_database(partial)
     partial.replace(path)
     return path
+
+
+def compact_copy(source, target) -> None:
+    """Copy an HDF5 file object by object into a new file: a group deleted or replaced in place leaves its bytes
+    behind in the file (HDF5 does not give them back), a copy holds only what is live."""
+    import h5py
+
+    with h5py.File(source, "r") as old, h5py.File(target, "w") as new:
+        for key, value in old.attrs.items():
+            new.attrs[key] = value
+        for name in old:
+            old.copy(old[name], new, name=name)
 
 
 def store_regressor(path, regressor: Regressor) -> Path:
@@ -426,7 +531,7 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
     extra = example_copies(db, settings)
     mirror = data_mirror(db, settings)
     bar.update()
-    dofs = pose_dofs(db, settings.features)
+    dofs = model_inputs(db, settings)
     report = cross_validate(frames, extra, dofs, settings, folds, mirror)
     bar.update(folds)
     train = with_mirror(frames, mirror)
@@ -487,6 +592,8 @@ def main(argv=None) -> int:
     parser.add_argument("--mirror", action="store_true", help="train on the frames' left-right mirror images too "
                         "(not the database's drapes')")
     add_network_arguments(parser)
+    parser.add_argument("--parts", action="store_true", help="one MLP and PCA per garment region, on that region's "
+                        "own pose dofs, blended by the region weights")
     parser.add_argument("--folds", type=int, default=3, help="validation folds of whole clips")
     parser.add_argument("--force", action="store_true", help="retrain even if the stored regressor is up to date")
     parser.add_argument("--quiet", action="store_true")
@@ -497,11 +604,11 @@ def main(argv=None) -> int:
                         "nothing")
     args = parser.parse_args(argv)
     settings = replace(network_settings(args), settled_copies=args.settled_copies if args.settled else 0,
-                       dynamic=not args.static_only, mirror=args.mirror)
+                       dynamic=not args.static_only, mirror=args.mirror, parts=args.parts)
     if args.validate_examples:
         db = read_database(args.database)
         frames, _ = training_frames(args.pack, db, settings, args.settled)
-        rows = validate_example_copies(frames, example_data(db), pose_dofs(db, settings.features), settings,
+        rows = validate_example_copies(frames, example_data(db), model_inputs(db, settings), settings,
                                        args.validate_examples)
         json.dump({"database": args.database, "pack": args.pack, "copies": rows,
                    **({"settled": args.settled, "settled_copies": settings.settled_copies} if args.settled else {})},
@@ -514,7 +621,7 @@ def main(argv=None) -> int:
         db = read_database(args.database)
         frames = training_frames(args.pack, db, replace(settings, settled_copies=0))[0] if settings.dynamic else None
         settled, _ = settled_data(args.settled, db, settings.max_offset)
-        rows = validate_settled_copies(frames, settled, example_copies(db, settings), pose_dofs(db, settings.features),
+        rows = validate_settled_copies(frames, settled, example_copies(db, settings), model_inputs(db, settings),
                                        settings, args.validate_settled, args.folds, data_mirror(db, settings))
         json.dump({"database": args.database, "pack": args.pack, "settled": args.settled,
                    "settled_drapes": int(len(settled.poses)), "copies": rows}, sys.stdout, indent=1)

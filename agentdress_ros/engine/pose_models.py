@@ -21,7 +21,7 @@ import numpy as np
 
 from ..body.kinematics import forward_kinematics
 from .database import Database
-from .kernels import block_accumulate, prepare_pose, region_neighbours, unpose
+from .kernels import add_to_columns, block_accumulate, prepare_pose, region_neighbours, unpose
 
 
 @runtime_checkable
@@ -231,6 +231,9 @@ class RegressorDecoder:
         self.basis = np.ascontiguousarray(np.transpose(basis, (0, 2, 1)).reshape(len(basis), 3 * n_vertices),
                                           dtype=dtype)  # (G, 3V): x row, y row, z row
         self.mean = np.ascontiguousarray(mean.T.reshape(-1), dtype=dtype)
+        self.blocks = mlp_blocks(self.weights, unit)
+        if self.blocks is not None:  # a parts regressor (build.regressor.merged_parts): each block alone, no zeros
+            self.blocks = [_Block(self.weights, self.biases, basis, dtype, self.relu, *block) for block in self.blocks]
         self._allocate()
 
     def _allocate(self):
@@ -238,11 +241,14 @@ class RegressorDecoder:
         self.coefficients = np.empty(self.basis.shape[0], dtype=self.basis.dtype)
         self.flat = np.empty(self.basis.shape[1], dtype=self.basis.dtype)
         self.out = self.flat.reshape(3, -1)
+        self.outputs = np.empty(self.weights[-1].shape[1])
 
     def fork(self) -> "RegressorDecoder":
         """A decoder sharing the weights, with buffers of its own."""
         twin = copy.copy(self)
         twin._allocate()
+        if self.blocks is not None:
+            twin.blocks = [block.fork() for block in self.blocks]
         return twin
 
     def standardize(self, inputs) -> np.ndarray:
@@ -256,6 +262,10 @@ class RegressorDecoder:
 
     def mlp(self, x) -> np.ndarray:
         """The MLP's standardised output y (G,) for a standardised input x (I,) (an internal buffer)."""
+        if self.blocks is not None:
+            for block in self.blocks:
+                block.mlp(x, self.outputs)
+            return self.outputs
         last = len(self.weights) - 1
         for n, (w, b, h) in enumerate(zip(self.weights, self.biases, self.hidden)):
             np.dot(x, w, out=h)
@@ -275,9 +285,91 @@ class RegressorDecoder:
     def decode_outputs(self, outputs) -> np.ndarray:
         """(3, V) output for standardised MLP outputs y (G,)."""
         self.coefficients[:] = outputs
+        if self.blocks is not None:
+            self.flat[:] = self.mean
+            for block in self.blocks:
+                block.decode(self.coefficients, self.out)
+            return self.out
         np.dot(self.coefficients, self.basis, out=self.flat)
         self.flat += self.mean
         return self.out
+
+
+def mlp_blocks(weights: list, basis: np.ndarray) -> list | None:
+    """[(input rows, hidden units, outputs, vertices)] of a one-hidden-layer MLP whose units fall into independent
+    blocks (a parts regressor, build.regressor.merged_parts: no weight joins two blocks, each block's outputs decode
+    onto its own vertices of basis (G, V, 3)); None when it is one block. Found from the exact zeros."""
+    if len(weights) != 2:
+        return None
+    first, last = (np.asarray(w) != 0 for w in weights)
+    n_hidden = last.shape[0]
+    parent = np.arange(n_hidden)  # union-find over hidden units that feed a common output
+
+    def root(u):
+        while parent[u] != u:
+            parent[u] = parent[parent[u]]
+            u = parent[u]
+        return u
+
+    for g in range(last.shape[1]):
+        units = np.flatnonzero(last[:, g])
+        for u in units[1:]:
+            parent[root(u)] = root(units[0])
+    roots = np.array([root(u) for u in range(n_hidden)])
+    labels = np.unique(roots)
+    if len(labels) < 2:
+        return None
+    blocks = []
+    for label in labels:
+        units = np.flatnonzero(roots == label)
+        outputs = np.flatnonzero(last[units].any(axis=0))
+        rows = np.flatnonzero(first[:, units].any(axis=1))
+        vertices = np.flatnonzero(np.abs(basis[outputs]).sum(axis=(0, 2)) > 0)
+        blocks.append((rows, units, outputs, vertices))
+    return blocks
+
+
+class _Block:
+    """One block of mlp_blocks, evaluated alone in the decoder's dtype (float32 in the node: half the time of
+    float64): its inputs, hidden units, outputs, and its outputs decoded onto its vertices only (the scaled basis
+    (G, V, 3) restricted)."""
+
+    def __init__(self, weights, biases, basis, dtype, relu, rows, units, outputs, vertices):
+        self.rows, self.outputs, self.vertices, self.relu = rows, outputs, vertices, relu
+        self.first = np.ascontiguousarray(weights[0][np.ix_(rows, units)], dtype=dtype)
+        self.first_bias = np.ascontiguousarray(biases[0][units], dtype=dtype)
+        self.last = np.ascontiguousarray(weights[1][np.ix_(units, outputs)], dtype=dtype)
+        self.last_bias = np.ascontiguousarray(biases[1][outputs], dtype=dtype)
+        self.basis = np.ascontiguousarray(np.transpose(basis[np.ix_(outputs, vertices)], (0, 2, 1)).reshape(
+            len(outputs), 3 * len(vertices)), dtype=dtype)  # (G_b, 3 V_b): x, y and z rows
+        self._allocate()
+
+    def _allocate(self):
+        self.inputs = np.empty(self.first.shape[0], dtype=self.first.dtype)
+        self.hidden = np.empty(self.first.shape[1], dtype=self.first.dtype)
+        self.result = np.empty(self.last.shape[1], dtype=self.first.dtype)
+        self.flat = np.empty(self.basis.shape[1], dtype=self.basis.dtype)
+
+    def fork(self) -> "_Block":
+        twin = copy.copy(self)
+        twin._allocate()
+        return twin
+
+    def mlp(self, x, outputs):
+        self.inputs[:] = x[self.rows]
+        np.dot(self.inputs, self.first, out=self.hidden)
+        self.hidden += self.first_bias
+        if self.relu:
+            np.maximum(self.hidden, 0.0, out=self.hidden)
+        else:
+            np.tanh(self.hidden, out=self.hidden)
+        np.dot(self.hidden, self.last, out=self.result)
+        self.result += self.last_bias
+        outputs[self.outputs] = self.result
+
+    def decode(self, coefficients, out):
+        np.dot(coefficients[self.outputs], self.basis, out=self.flat)
+        add_to_columns(out, self.vertices, self.flat.reshape(3, -1))
 
 
 class RegressorPoseModel:
