@@ -54,6 +54,7 @@ def test_numpy_inference_equals_the_sklearn_model(body, database, frames, traine
     # the engine's per-frame path (internal vertex order, float64 buffers) gives the same rest-frame garment
     engine = Engine(replace(database, regressor=regressor), body, EngineConfig(pose_model="regressor",
                                                                                   dtype="float64"))
+    assert engine.pose_model.decoder.blocks is None  # one MLP of the whole garment: one dense product
     for pose, want in zip(frames.poses[:3], expected[:3]):
         out = np.empty_like(want)
         out[engine.order] = engine.pose_model.evaluate(pose, np.zeros(3), None).T
@@ -112,7 +113,7 @@ def test_a_parts_regressor_is_its_parts_blended_and_the_engine_skips_the_zeros(b
         expected[:, part.vertices] += part.blend[None, :, None] * predict(member, poses)
     np.testing.assert_allclose(predict(regressor, poses), expected, atol=1e-6)  # float32 arrays, blended
     decoder = RegressorDecoder(regressor)
-    assert len(decoder.blocks) == len(parts)
+    assert len(decoder.blocks.rows) == len(parts)
     for pose, want in zip(poses, expected):
         np.testing.assert_allclose(decoder.decode(pose).T, want, atol=1e-6)
     twin = decoder.fork()

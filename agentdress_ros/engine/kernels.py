@@ -337,7 +337,8 @@ def _blended_transform(transforms, skin_indices, skin_weights, v):
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def skin_with_normals(points, normals, skin_indices, skin_weights, transforms, posed, posed_normals):
     """posed, posed_normals (U, 3) = points, normals (U, 3) skinned with their own skin_indices, skin_weights (U, J)
-    and transforms (B, 3, 4); the normals rotated by the blended 3x3 and renormalised."""
+    and transforms (B, 3, 4); the normals rotated by the blended 3x3, not renormalised (a blend of rotations shortens
+    them a little): project_out_of_body normalises the one it uses, a few candidates of many."""
     for u in range(points.shape[0]):
         a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz = _blended_transform(transforms, skin_indices,
                                                                                       skin_weights, u)
@@ -346,21 +347,17 @@ def skin_with_normals(points, normals, skin_indices, skin_weights, transforms, p
         posed[u, 1] = a10 * px + a11 * py + a12 * pz + ty
         posed[u, 2] = a20 * px + a21 * py + a22 * pz + tz
         mx, my, mz = normals[u, 0], normals[u, 1], normals[u, 2]
-        nx = a00 * mx + a01 * my + a02 * mz
-        ny = a10 * mx + a11 * my + a12 * mz
-        nz = a20 * mx + a21 * my + a22 * mz
-        scale = 1.0 / max(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
-        posed_normals[u, 0] = nx * scale
-        posed_normals[u, 1] = ny * scale
-        posed_normals[u, 2] = nz * scale
+        posed_normals[u, 0] = a00 * mx + a01 * my + a02 * mz
+        posed_normals[u, 1] = a10 * mx + a11 * my + a12 * mz
+        posed_normals[u, 2] = a20 * mx + a21 * my + a22 * mz
 
 
 @numba.njit(cache=True, nogil=True)
 def project_out_of_body(out, offsets, candidates, posed, posed_normals, margin):
     """In place: each garment vertex out[v] (V, 3) closer than `margin` in front of (or behind) the nearest of its
     candidate body vertices candidates[offsets[v]:offsets[v + 1]] (CSR, indices into posed, posed_normals (U, 3) of
-    skin_with_normals) moves out along that vertex's normal to `margin`. Compiled without fastmath (its isfinite
-    checks must stay). Returns the count of non-finite output vertices."""
+    skin_with_normals, normals of any length) moves out along that vertex's unit normal to `margin`. Compiled without
+    fastmath (its isfinite checks must stay). Returns the count of non-finite output vertices."""
     bad = 0
     for v in range(out.shape[0]):
         x, y, z = out[v, 0], out[v, 1], out[v, 2]
@@ -373,6 +370,8 @@ def project_out_of_body(out, offsets, candidates, posed, posed_normals, margin):
             if d2 < best:
                 best, nearest = d2, u
         nx, ny, nz = posed_normals[nearest, 0], posed_normals[nearest, 1], posed_normals[nearest, 2]
+        scale = 1.0 / max(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)  # skinned, not yet unit
+        nx, ny, nz = nx * scale, ny * scale, nz * scale
         h = (x - posed[nearest, 0]) * nx + (y - posed[nearest, 1]) * ny + (z - posed[nearest, 2]) * nz
         if h < margin:
             out[v, 0] = x + (margin - h) * nx
@@ -577,8 +576,8 @@ def shape_anchors(delta_coefficients, coefficients, means, components, anchor_tr
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def add_to_columns(out, columns, values):
-    """out[:, columns[i]] += values[:, i] for out (C, V), columns (n,), values (C, n): one block's decoded vertices
-    added into the whole garment (a gather and scatter through numpy's fancy indexing costs 6x more)."""
+    """out[:, columns[i]] += values[:, i] for out (C, V), columns (n,), values (C, n): decoded vertices added into the
+    whole garment (numpy's fancy-index gather and scatter costs 6x more)."""
     for c in range(out.shape[0]):
         for i in range(columns.shape[0]):
             out[c, columns[i]] += values[c, i]

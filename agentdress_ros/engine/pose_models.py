@@ -231,9 +231,9 @@ class RegressorDecoder:
         self.basis = np.ascontiguousarray(np.transpose(basis, (0, 2, 1)).reshape(len(basis), 3 * n_vertices),
                                           dtype=dtype)  # (G, 3V): x row, y row, z row
         self.mean = np.ascontiguousarray(mean.T.reshape(-1), dtype=dtype)
-        self.blocks = mlp_blocks(self.weights, unit)
-        if self.blocks is not None:  # a parts regressor (build.regressor.merged_parts): each block alone, no zeros
-            self.blocks = [_Block(self.weights, self.biases, basis, dtype, self.relu, *block) for block in self.blocks]
+        blocks = mlp_blocks(self.weights, unit)
+        # a parts regressor (build.regressor.merged_parts): each block alone, none of the zeros between them
+        self.blocks = None if blocks is None else _Blocks(self.weights, self.biases, basis, dtype, self.relu, blocks)
         self._allocate()
 
     def _allocate(self):
@@ -248,7 +248,7 @@ class RegressorDecoder:
         twin = copy.copy(self)
         twin._allocate()
         if self.blocks is not None:
-            twin.blocks = [block.fork() for block in self.blocks]
+            twin.blocks = self.blocks.fork()
         return twin
 
     def standardize(self, inputs) -> np.ndarray:
@@ -263,8 +263,7 @@ class RegressorDecoder:
     def mlp(self, x) -> np.ndarray:
         """The MLP's standardised output y (G,) for a standardised input x (I,) (an internal buffer)."""
         if self.blocks is not None:
-            for block in self.blocks:
-                block.mlp(x, self.outputs)
+            self.blocks.mlp(x, self.outputs)
             return self.outputs
         last = len(self.weights) - 1
         for n, (w, b, h) in enumerate(zip(self.weights, self.biases, self.hidden)):
@@ -287,8 +286,7 @@ class RegressorDecoder:
         self.coefficients[:] = outputs
         if self.blocks is not None:
             self.flat[:] = self.mean
-            for block in self.blocks:
-                block.decode(self.coefficients, self.out)
+            self.blocks.decode(self.coefficients, self.out)
             return self.out
         np.dot(self.coefficients, self.basis, out=self.flat)
         self.flat += self.mean
@@ -301,75 +299,80 @@ def mlp_blocks(weights: list, basis: np.ndarray) -> list | None:
     onto its own vertices of basis (G, V, 3)); None when it is one block. Found from the exact zeros."""
     if len(weights) != 2:
         return None
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     first, last = (np.asarray(w) != 0 for w in weights)
-    n_hidden = last.shape[0]
-    parent = np.arange(n_hidden)  # union-find over hidden units that feed a common output
-
-    def root(u):
-        while parent[u] != u:
-            parent[u] = parent[parent[u]]
-            u = parent[u]
-        return u
-
-    for g in range(last.shape[1]):
-        units = np.flatnonzero(last[:, g])
-        for u in units[1:]:
-            parent[root(u)] = root(units[0])
-    roots = np.array([root(u) for u in range(n_hidden)])
-    labels = np.unique(roots)
-    if len(labels) < 2:
-        return None
+    n_hidden, n_outputs = last.shape
+    units, outputs = np.nonzero(last)  # hidden units joined through a common output are one block
+    graph = coo_matrix((np.ones(len(units)), (units, n_hidden + outputs)), shape=(n_hidden + n_outputs,) * 2)
+    roots = connected_components(graph, directed=False)[1][:n_hidden]
     blocks = []
-    for label in labels:
+    for label in np.unique(roots):
         units = np.flatnonzero(roots == label)
         outputs = np.flatnonzero(last[units].any(axis=0))
-        rows = np.flatnonzero(first[:, units].any(axis=1))
-        vertices = np.flatnonzero(np.abs(basis[outputs]).sum(axis=(0, 2)) > 0)
-        blocks.append((rows, units, outputs, vertices))
-    return blocks
+        if len(outputs):  # a unit that feeds no output (its weights all zero) changes nothing
+            if outputs[-1] - outputs[0] + 1 != len(outputs):
+                return None  # not laid out as merged_parts does: the dense product is exact as well
+            rows = np.flatnonzero(first[:, units].any(axis=1))
+            vertices = np.flatnonzero(np.abs(basis[outputs]).sum(axis=(0, 2)) > 0)
+            blocks.append((rows, units, outputs, vertices))
+    return blocks if len(blocks) > 1 else None
 
 
-class _Block:
-    """One block of mlp_blocks, evaluated alone in the decoder's dtype (float32 in the node: half the time of
-    float64): its inputs, hidden units, outputs, and its outputs decoded onto its vertices only (the scaled basis
-    (G, V, 3) restricted)."""
+class _Blocks:
+    """The blocks of mlp_blocks evaluated alone, in the decoder's dtype (float32 in the node: half the time of
+    float64): per block only its inputs, hidden units and outputs, and its outputs decoded onto its own vertices (the
+    scaled basis (G, V, 3) restricted). Per-call overhead, not arithmetic, dominates at these sizes, so the hidden
+    units of all blocks share one buffer (one bias and one activation call) and each block's outputs are a contiguous
+    range of G (as merged_parts lays them out; mlp_blocks checks)."""
 
-    def __init__(self, weights, biases, basis, dtype, relu, rows, units, outputs, vertices):
-        self.rows, self.outputs, self.vertices, self.relu = rows, outputs, vertices, relu
-        self.first = np.ascontiguousarray(weights[0][np.ix_(rows, units)], dtype=dtype)
-        self.first_bias = np.ascontiguousarray(biases[0][units], dtype=dtype)
-        self.last = np.ascontiguousarray(weights[1][np.ix_(units, outputs)], dtype=dtype)
-        self.last_bias = np.ascontiguousarray(biases[1][outputs], dtype=dtype)
-        self.basis = np.ascontiguousarray(np.transpose(basis[np.ix_(outputs, vertices)], (0, 2, 1)).reshape(
-            len(outputs), 3 * len(vertices)), dtype=dtype)  # (G_b, 3 V_b): x, y and z rows
+    def __init__(self, weights, biases, basis, dtype, relu, blocks):
+        self.relu, self.dtype = relu, dtype
+        self.rows = [r for r, _, _, _ in blocks]
+        self.vertices = [v for _, _, _, v in blocks]
+        self.units = np.cumsum([0] + [len(u) for _, u, _, _ in blocks])
+        self.outputs = [(int(o[0]), int(o[-1]) + 1) for _, _, o, _ in blocks]
+        self.first = [np.ascontiguousarray(weights[0][np.ix_(r, u)], dtype=dtype) for r, u, _, _ in blocks]
+        self.last = [np.ascontiguousarray(weights[1][np.ix_(u, o)], dtype=dtype) for _, u, o, _ in blocks]
+        self.first_bias = np.ascontiguousarray(np.concatenate([biases[0][u] for _, u, _, _ in blocks]), dtype=dtype)
+        self.last_bias = np.asarray(biases[1], dtype=np.float64)
+        self.basis = [np.ascontiguousarray(np.transpose(basis[np.ix_(o, v)], (0, 2, 1)).reshape(len(o), 3 * len(v)),
+                                           dtype=dtype) for _, _, o, v in blocks]  # (G_b, 3 V_b): x, y, z rows
         self._allocate()
 
     def _allocate(self):
-        self.inputs = np.empty(self.first.shape[0], dtype=self.first.dtype)
-        self.hidden = np.empty(self.first.shape[1], dtype=self.first.dtype)
-        self.result = np.empty(self.last.shape[1], dtype=self.first.dtype)
-        self.flat = np.empty(self.basis.shape[1], dtype=self.basis.dtype)
+        self.inputs = np.empty(max(len(r) for r in self.rows) + 1, dtype=self.dtype)
+        self.standard = np.empty(0, dtype=self.dtype)
+        self.hidden = np.empty(self.units[-1], dtype=self.dtype)
+        self.result = np.empty(len(self.last_bias), dtype=self.dtype)
+        self.flats = [np.empty(b.shape[1], dtype=self.dtype) for b in self.basis]
 
-    def fork(self) -> "_Block":
+    def fork(self) -> "_Blocks":
         twin = copy.copy(self)
         twin._allocate()
         return twin
 
     def mlp(self, x, outputs):
-        self.inputs[:] = x[self.rows]
-        np.dot(self.inputs, self.first, out=self.hidden)
+        """outputs (G,) = the MLP's standardised output for a standardised input x (I,)."""
+        x = x.astype(self.dtype)
+        for b, (rows, first) in enumerate(zip(self.rows, self.first)):
+            np.dot(x[rows], first, out=self.hidden[self.units[b]:self.units[b + 1]])
         self.hidden += self.first_bias
         if self.relu:
             np.maximum(self.hidden, 0.0, out=self.hidden)
         else:
             np.tanh(self.hidden, out=self.hidden)
-        np.dot(self.hidden, self.last, out=self.result)
-        self.result += self.last_bias
-        outputs[self.outputs] = self.result
+        for b, ((g0, g1), last) in enumerate(zip(self.outputs, self.last)):
+            np.dot(self.hidden[self.units[b]:self.units[b + 1]], last, out=self.result[g0:g1])
+        np.add(self.result, self.last_bias, out=outputs)
 
     def decode(self, coefficients, out):
-        np.dot(coefficients[self.outputs], self.basis, out=self.flat)
-        add_to_columns(out, self.vertices, self.flat.reshape(3, -1))
+        """out (3, V) += every block's coefficients times its basis, on its vertices."""
+        coefficients = coefficients.astype(self.dtype)
+        for (g0, g1), basis, vertices, flat in zip(self.outputs, self.basis, self.vertices, self.flats):
+            np.dot(coefficients[g0:g1], basis, out=flat)
+            add_to_columns(out, vertices, flat.reshape(3, -1))
 
 
 class RegressorPoseModel:
