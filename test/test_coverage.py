@@ -5,6 +5,7 @@ import pytest
 from agentdress_ros.garment import make_garment, read_mhclo
 from agentdress_ros.garment.binding import region_weights
 from agentdress_ros.garment.coverage import (
+    body_part_labels,
     boundary_distance,
     cover_depth,
     covered_faces,
@@ -84,6 +85,32 @@ def test_skin_of_another_body_part_outside_the_cloth_is_not_poking_through_it():
     assert before[arm_rows].all()  # what the count said without the rule
     near, near_faces = grid(5, 0.1, z=0.015)
     assert poke_through(near, near_faces, panel, panel_faces, max_gap=0.06, edge_band=0.05).all()
+
+
+def test_a_panel_floating_nearer_another_body_part_is_that_parts_cloth():
+    """The armpit of a heavy body: a shirt panel floating 4.8 cm outside the torso and an arm patch 5.2 cm outside
+    the panel. Within a centimetre of each other, the distances alone cannot tell whose cloth it is (the arm counts
+    as poking through); with the body's parts the torso, nearer by however little, owns it. Skin of the same part
+    just outside the panel still pokes through."""
+    torso, torso_faces = grid(41, 1.0)
+    panel, panel_faces = grid(21, 0.5, z=0.048)
+    arm, arm_faces = grid(5, 0.1, z=0.1)
+    body = np.concatenate([torso, arm])
+    faces = np.concatenate([torso_faces, arm_faces + len(torso)])
+    parts = np.concatenate([np.zeros(len(torso), int), np.ones(len(arm), int)])
+    arm_rows = np.arange(len(torso_faces), len(faces))
+    assert poke_through(body, faces, panel, panel_faces, max_gap=0.06, edge_band=0.05)[arm_rows].all()
+    assert not poke_through(body, faces, panel, panel_faces, max_gap=0.06, edge_band=0.05, vertex_parts=parts).any()
+    near, near_faces = grid(5, 0.1, z=0.053)
+    body = np.concatenate([torso, near])
+    assert poke_through(body, faces, panel, panel_faces, max_gap=0.06, edge_band=0.05,
+                        vertex_parts=np.zeros(len(body), int))[arm_rows].all()
+
+
+def test_body_parts_are_the_skinning_regions(body):
+    parts = body_part_labels(body)
+    assert parts.shape == (len(body.skin_indices),) and set(np.unique(parts)) <= set(range(7))
+    assert len(np.unique(parts)) == 7  # torso, two upper arms, two forearms, two legs
 
 
 def test_skin_is_judged_against_the_cloth_facing_its_way_not_a_panel_it_meets_face_to_face():

@@ -316,6 +316,13 @@ def coefficients_of(regressor: Regressor, positions: np.ndarray) -> np.ndarray:
     return np.linalg.solve(unit @ unit.T, unit @ centred.T).T
 
 
+def restored(regressor: Regressor, positions: np.ndarray) -> np.ndarray:
+    """(F, V, 3) positions (F, V, 3) as the regressor's PCA holds them (coefficients_of): what G components keep."""
+    basis = regressor.basis.reshape(len(regressor.basis), -1).astype(np.float64)
+    flat = coefficients_of(regressor, positions) @ basis + regressor.mean.reshape(-1)
+    return flat.reshape(positions.shape)
+
+
 def standardized_inputs(regressor: Regressor, poses: np.ndarray) -> np.ndarray:
     """(F, I) the MLP's standardised inputs for canonical poses (F, B, 3) (or input vectors (F, D))."""
     return standardized(poses.reshape(len(poses), -1)[:, regressor.dofs], regressor.input_mean,
@@ -375,9 +382,7 @@ def cross_validate(frames: TrainingData, extra: TrainingData | None, dofs, setti
         regressor, _ = fit(train, dofs, settings)
         truth = frames.positions[test]
         errors.append(vertex_error(predict(regressor, frames.poses[test]), truth))
-        restored = coefficients_of(regressor, truth) @ regressor.basis.reshape(len(regressor.basis), -1) + \
-            regressor.mean.reshape(-1)
-        pca_errors.append(vertex_error(restored.reshape(truth.shape), truth))
+        pca_errors.append(vertex_error(restored(regressor, truth), truth))
         mean_errors.append(vertex_error(regressor.mean[None].astype(np.float64), truth))
         weights.append(int(test.sum()))
     w = np.asarray(weights, dtype=np.float64) / sum(weights)

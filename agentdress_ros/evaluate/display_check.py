@@ -40,7 +40,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
     from dataclasses import replace
 
     from ..body import AnnyBody
-    from ..garment.coverage import poke_through, surface_side
+    from ..garment.coverage import body_part_labels, poke_through, surface_side
     from ..ros.demo import load_clip, sweep_shape
     from ..ros.garment_models import BodyModel
     from ..ros.runtime import build_model_set
@@ -56,6 +56,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             model_set = _models(body, databases, subdivision, layered)
             plain = BodyModel(body)  # before: every face drawn, nothing sunk
             every_face = plain.faces
+            parts = body_part_labels(body, plain.body_ids)  # both body models keep every visible vertex
             counts = {"drawn_poking": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0,
                       "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0}
             timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}
@@ -83,11 +84,12 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                         counts["gaps"] += _gaps(skin, models["body"], every_face, out, models)
                     for name in ("tshirt", "trousers"):
                         garment, faces = out[name], models[name].faces
-                        counts["drawn_poking"] += int(poke_through(skin, drawn, garment, faces,
-                                                                   edge_band=edge_band).sum())
+                        counts["drawn_poking"] += int(poke_through(skin, drawn, garment, faces, edge_band=edge_band,
+                                                                   vertex_parts=parts).sum())
                         if layered:
                             counts["poking_all_faces"] += int(poke_through(plain_skin, every_face, garment, faces,
-                                                                           edge_band=edge_band).sum())
+                                                                           edge_band=edge_band,
+                                                                           vertex_parts=parts).sum())
                     coarse = {g: getattr(models[g], "coarse", None) for g in ("tshirt", "trousers")}
                     shirt = np.array(out["tshirt"] if coarse["tshirt"] is None else coarse["tshirt"], dtype=np.float64)
                     trousers = np.array(out["trousers"] if coarse["trousers"] is None else coarse["trousers"],

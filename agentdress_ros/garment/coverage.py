@@ -29,7 +29,7 @@ NO_EDGE = 1e9
 #: belongs to that part.
 OWNER_TOLERANCE = 0.01
 
-__all__ = ["MARGIN", "MAX_GAP", "TUCK", "boundary_distance", "cover_depth", "covered_faces", "covered_vertices",
+__all__ = ["MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cover_depth", "covered_faces", "covered_vertices",
            "faces_with_vertices", "garment_covered_faces", "poke_through", "surface_side", "tuck_depth"]
 
 
@@ -186,7 +186,8 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
 
 
 def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max_gap: float = MAX_GAP,
-                 edge_band: float = MARGIN, owner_tolerance: float = OWNER_TOLERANCE) -> np.ndarray:
+                 edge_band: float = MARGIN, owner_tolerance: float = OWNER_TOLERANCE,
+                 vertex_parts: np.ndarray | None = None) -> np.ndarray:
     """(F,) bool: body triangles (F, 3) whose centre lies outside the garment's surface where the garment covers it
     (surface_side, judged against the cloth facing the skin's way). The check behind "no skin through the cloth",
     on posed meshes of any frame.
@@ -194,7 +195,10 @@ def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max
     The cloth a face is judged against must lie on that face's part of the body: where another part of the body
     (body_vertices (N, 3), all of them) is closer to that cloth point than the face's centre is, by more than
     owner_tolerance, the face is skin outside the garment, not skin through it - an arm hanging beside the torso,
-    below a short sleeve and 5 cm outside the shirt's side panel, which faces the same way."""
+    below a short sleeve and 5 cm outside the shirt's side panel, which faces the same way. With vertex_parts (N,)
+    (each body vertex's part: body_part_labels), any vertex of another part than the face's closer to the cloth
+    point than the face is settles it: a panel floating in the armpit, 5 cm from both arm and torso, is the torso's
+    when the torso is nearer, by however little."""
     body_vertices = np.asarray(body_vertices, dtype=np.float64)
     corners = body_vertices[body_faces]
     centres = corners.mean(axis=1)
@@ -206,5 +210,24 @@ def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max
     if len(ids):
         to_face = np.linalg.norm(closest[ids] - centres[ids], axis=1)
         to_body, _ = cKDTree(body_vertices).query(closest[ids])
-        poking[ids[to_body < to_face - owner_tolerance]] = False
+        outside = to_body < to_face - owner_tolerance
+        if vertex_parts is not None:
+            vertex_parts = np.asarray(vertex_parts)
+            face_parts = np.array([np.bincount(row).argmax() for row in vertex_parts[body_faces[ids]]])
+            for part in np.unique(face_parts):
+                rows = np.flatnonzero(face_parts == part)
+                others = np.flatnonzero(vertex_parts != part)
+                if len(others):
+                    to_other, _ = cKDTree(body_vertices[others]).query(closest[ids[rows]])
+                    outside[rows] |= to_other < to_face[rows]
+        poking[ids[outside]] = False
     return poking
+
+
+def body_part_labels(body, vertex_ids=None) -> np.ndarray:
+    """(N,) int: each body vertex's part - the skinning region (garment.binding.REGIONS: torso, upper arms,
+    forearms, legs) that carries most of its skin weight; vertex_ids: hm08 ids of the vertices wanted (all)."""
+    from .binding import region_weights
+
+    ids = np.arange(len(body.skin_indices)) if vertex_ids is None else np.asarray(vertex_ids)
+    return region_weights(body.skin_indices[ids], body.skin_weights[ids], body.bone_names).argmax(axis=1)

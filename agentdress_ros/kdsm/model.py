@@ -28,7 +28,7 @@ import numpy as np
 
 from ..body.kinematics import forward_kinematics, linear_blend_skinning
 from ..build.regressor import (RegressorSettings, TrainingData, add_network_arguments, clip_folds, fit, kept_frames,
-                                network_settings, pack_data, pose_dofs, predict)
+                                model_inputs, network_settings, pack_data, predict, restored)
 from .embedding import KdsmPoser
 from .mesh import KDSM, KDSMSettings, build_kdsm
 from .training import (GarmentFrames, TargetSettings, drape_clearance, pack_frames, spread_frames,
@@ -215,14 +215,6 @@ def _errors(posed, drapes) -> np.ndarray:
     return np.linalg.norm(posed - drapes, axis=2).mean(axis=1)
 
 
-def _projected(regressor, truth):
-    """truth (F, V, 3) projected on the regressor's PCA (what G components can hold)."""
-    basis = regressor.basis.reshape(len(regressor.basis), -1).astype(np.float64)
-    mean = regressor.mean.reshape(-1).astype(np.float64)
-    centred = truth.reshape(len(truth), -1) - mean
-    return ((centred @ basis.T) @ basis + mean).reshape(truth.shape)
-
-
 def held_out_folds(groups, folds: int, split: str = "clips", seed: int = 0) -> list[np.ndarray]:
     """Row indices (of groups (F,) clip names) of each fold's held-out set: whole clips (build.regressor.clip_folds,
     our default: a test pose's clip is never seen) or, with split="frames", frames dealt at random (the paper's
@@ -272,9 +264,9 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
         posed, out = posed_kdsm(kdsm, rest, skin_i, skin_w, t.transforms, t.displacements)
         errors["kdsm_targets"].append(_errors(posed, t.drapes))
         outside["kdsm_targets"] += out
-        posed, _ = posed_kdsm(kdsm, rest, skin_i, skin_w, t.transforms, _projected(reg_d, t.displacements))
+        posed, _ = posed_kdsm(kdsm, rest, skin_i, skin_w, t.transforms, restored(reg_d, t.displacements))
         errors["kdsm_pca"].append(_errors(posed, t.drapes))
-        errors["offsets_pca"].append(_errors(posed_skinned(_projected(reg_x, t.unposed), skin_i, skin_w,
+        errors["offsets_pca"].append(_errors(posed_skinned(restored(reg_x, t.unposed), skin_i, skin_w,
                                                            t.transforms), t.drapes))
         errors["rest_skinned"].append(_errors(posed_skinned(np.broadcast_to(rest, t.unposed.shape), skin_i, skin_w,
                                                             t.transforms), t.drapes))
@@ -285,7 +277,7 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
             reg_s = fit_on_rows(targets, surface_x, train, dofs, settings)
             seconds["fit_surface"] += time.perf_counter() - started
             for name, offsets in (("surface", predict(reg_s, t.poses)), ("surface_targets", surface_x[test]),
-                                  ("surface_pca", _projected(reg_s, surface_x[test]))):
+                                  ("surface_pca", restored(reg_s, surface_x[test]))):
                 errors[name].append(_errors(from_surface(offsets, origin[test], frames[test]), t.drapes))
         fold_rows.append({"clips": sorted(set(targets.groups[test])), "frames": int(len(test)),
                           **{f"{n}_cm": float(errors[n][-1].mean() * 100) for n in names
@@ -412,9 +404,12 @@ def main(argv=None) -> int:
                         "ground_truth_beta0.npz, 40 poses)")
     parser.add_argument("--report", default=None, help="write the report (JSON) here too")
     add_network_arguments(parser, defaults.regressor)
+    parser.add_argument("--parts", action="store_true", help="every model of the comparison as region parts (one PCA "
+                        "and MLP per garment region on its own pose dofs, build.regressor.region_parts)")
     args = parser.parse_args(argv)
     settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin,
-                       smoothing=args.smoothing, guess=args.guess, regressor=network_settings(args))
+                       smoothing=args.smoothing, guess=args.guess,
+                       regressor=replace(network_settings(args), parts=args.parts))
     reg_settings = settings.regressor
 
     started = time.perf_counter()
@@ -435,7 +430,7 @@ def main(argv=None) -> int:
             save_kdsm(mesh_path, kdsm)
             save_targets(args.targets, targets, key)
     target_seconds = time.perf_counter() - started
-    dofs = pose_dofs(db, reg_settings.features)
+    dofs = model_inputs(db, reg_settings)
     report = {"kdsm": kdsm.info, "frames": int((targets.groups != "examples").sum()),
               "clips": int(len(np.unique(targets.groups[targets.groups != "examples"]))),
               "example_drapes": int((targets.groups == "examples").sum()), "targets_seconds": target_seconds}
