@@ -556,8 +556,9 @@ def train_database_regressor(db_path, pack_path, settings: RegressorSettings, fo
     return {"database": str(db_path), "bytes_before": before, "bytes_after": Path(db_path).stat().st_size, **info}
 
 
-def add_network_arguments(parser, defaults: RegressorSettings | None = None) -> None:
-    """The command-line options of RegressorSettings' network and training data (read back by network_settings)."""
+def add_network_arguments(parser, defaults: RegressorSettings | None = None, parts: bool = False) -> None:
+    """The command-line options of RegressorSettings' network and training data (read back by network_settings);
+    with parts, --parts too (for commands whose inputs are the pose alone: model_inputs)."""
     defaults = defaults or RegressorSettings()
     parser.add_argument("--components", type=int, default=defaults.components)
     parser.add_argument("--hidden", type=int, nargs="+", default=list(defaults.hidden))
@@ -572,6 +573,9 @@ def add_network_arguments(parser, defaults: RegressorSettings | None = None) -> 
                         "stored as one whose output is their mean")
     parser.add_argument("--max-offset", type=float, default=defaults.max_offset, help="leave out frames whose garment "
                         "strays further than this (m) from its skinned place: a simulation that lost it")
+    if parts:
+        parser.add_argument("--parts", action="store_true", help="one MLP and PCA per garment region, on that "
+                            "region's own pose dofs, blended by the region weights (region_parts)")
 
 
 def network_settings(args) -> RegressorSettings:
@@ -579,7 +583,7 @@ def network_settings(args) -> RegressorSettings:
     return RegressorSettings(components=args.components, hidden=tuple(args.hidden), activation=args.activation,
                              alpha=args.alpha, features=args.features, examples=args.examples,
                              max_iter=args.max_iter, seed=args.seed, max_offset=args.max_offset,
-                             ensemble=args.ensemble)
+                             ensemble=args.ensemble, parts=getattr(args, "parts", False))
 
 
 def main(argv=None) -> int:
@@ -596,9 +600,7 @@ def main(argv=None) -> int:
                         "copies and the database's beta0 drapes), not on the pack's dynamic frames")
     parser.add_argument("--mirror", action="store_true", help="train on the frames' left-right mirror images too "
                         "(not the database's drapes')")
-    add_network_arguments(parser)
-    parser.add_argument("--parts", action="store_true", help="one MLP and PCA per garment region, on that region's "
-                        "own pose dofs, blended by the region weights")
+    add_network_arguments(parser, parts=True)
     parser.add_argument("--folds", type=int, default=3, help="validation folds of whole clips")
     parser.add_argument("--force", action="store_true", help="retrain even if the stored regressor is up to date")
     parser.add_argument("--quiet", action="store_true")
@@ -609,7 +611,7 @@ def main(argv=None) -> int:
                         "nothing")
     args = parser.parse_args(argv)
     settings = replace(network_settings(args), settled_copies=args.settled_copies if args.settled else 0,
-                       dynamic=not args.static_only, mirror=args.mirror, parts=args.parts)
+                       dynamic=not args.static_only, mirror=args.mirror)
     if args.validate_examples:
         db = read_database(args.database)
         frames, _ = training_frames(args.pack, db, settings, args.settled)

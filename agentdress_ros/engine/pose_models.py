@@ -328,7 +328,7 @@ class _Blocks:
     range of G (as merged_parts lays them out; mlp_blocks checks)."""
 
     def __init__(self, weights, biases, basis, dtype, relu, blocks):
-        self.relu, self.dtype = relu, dtype
+        self.relu, self.dtype, self.n_inputs = relu, dtype, weights[0].shape[0]
         self.rows = [r for r, _, _, _ in blocks]
         self.vertices = [v for _, _, _, v in blocks]
         self.units = np.cumsum([0] + [len(u) for _, u, _, _ in blocks])
@@ -341,11 +341,11 @@ class _Blocks:
                                            dtype=dtype) for _, _, o, v in blocks]  # (G_b, 3 V_b): x, y, z rows
         self._allocate()
 
-    def _allocate(self):
-        self.inputs = np.empty(max(len(r) for r in self.rows) + 1, dtype=self.dtype)
-        self.standard = np.empty(0, dtype=self.dtype)
+    def _allocate(self):  # the per-frame arrays (each block's gathered inputs excepted, below)
+        self.x = np.empty(self.n_inputs, dtype=self.dtype)
         self.hidden = np.empty(self.units[-1], dtype=self.dtype)
         self.result = np.empty(len(self.last_bias), dtype=self.dtype)
+        self.coefficients = np.empty(len(self.last_bias), dtype=self.dtype)
         self.flats = [np.empty(b.shape[1], dtype=self.dtype) for b in self.basis]
 
     def fork(self) -> "_Blocks":
@@ -355,9 +355,10 @@ class _Blocks:
 
     def mlp(self, x, outputs):
         """outputs (G,) = the MLP's standardised output for a standardised input x (I,)."""
-        x = x.astype(self.dtype)
+        np.copyto(self.x, x, casting="same_kind")
         for b, (rows, first) in enumerate(zip(self.rows, self.first)):
-            np.dot(x[rows], first, out=self.hidden[self.units[b]:self.units[b + 1]])
+            # a fancy-index gather allocates its <= 49 floats in 0.3 us; np.take into a buffer takes 1.8 us
+            np.dot(self.x[rows], first, out=self.hidden[self.units[b]:self.units[b + 1]])
         self.hidden += self.first_bias
         if self.relu:
             np.maximum(self.hidden, 0.0, out=self.hidden)
@@ -369,9 +370,9 @@ class _Blocks:
 
     def decode(self, coefficients, out):
         """out (3, V) += every block's coefficients times its basis, on its vertices."""
-        coefficients = coefficients.astype(self.dtype)
+        np.copyto(self.coefficients, coefficients, casting="same_kind")
         for (g0, g1), basis, vertices, flat in zip(self.outputs, self.basis, self.vertices, self.flats):
-            np.dot(coefficients[g0:g1], basis, out=flat)
+            np.dot(self.coefficients[g0:g1], basis, out=flat)
             add_to_columns(out, vertices, flat.reshape(3, -1))
 
 

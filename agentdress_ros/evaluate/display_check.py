@@ -51,12 +51,12 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
     frames = range(0, len(motion.rotvecs), frames_step)
     shapes = [tuple(float(b) for b in sweep_shape(t, 20.0)) for t in sweep_times]
     report = {"frames_per_shape": len(frames), "shapes": shapes, "edge_band_m": edge_band, "runs": {}}
+    parts = body_part_labels(body, body.body_vertex_ids)  # both body models keep every visible vertex, in this order
     for subdivision in subdivisions:
         for layered in (True, False):
             model_set = _models(body, databases, subdivision, layered)
             plain = BodyModel(body)  # before: every face drawn, nothing sunk
             every_face = plain.faces
-            parts = body_part_labels(body, plain.body_ids)  # both body models keep every visible vertex
             counts = {"drawn_poking": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0,
                       "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0}
             timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}

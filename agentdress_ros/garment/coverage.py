@@ -29,8 +29,9 @@ NO_EDGE = 1e9
 #: belongs to that part.
 OWNER_TOLERANCE = 0.01
 
-__all__ = ["MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cover_depth", "covered_faces", "covered_vertices",
-           "faces_with_vertices", "garment_covered_faces", "poke_through", "surface_side", "tuck_depth"]
+__all__ = ["MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cover_depth", "covered_faces",
+           "covered_vertices", "faces_with_vertices", "garment_covered_faces", "poke_through", "surface_side",
+           "tuck_depth"]
 
 
 def boundary_edges(faces: np.ndarray) -> np.ndarray:

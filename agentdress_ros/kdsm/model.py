@@ -403,13 +403,10 @@ def main(argv=None) -> int:
                         help="the held-out set whose poses --beta0-pack holds (v2: docs/eval/v2/<garment>/"
                         "ground_truth_beta0.npz, 40 poses)")
     parser.add_argument("--report", default=None, help="write the report (JSON) here too")
-    add_network_arguments(parser, defaults.regressor)
-    parser.add_argument("--parts", action="store_true", help="every model of the comparison as region parts (one PCA "
-                        "and MLP per garment region on its own pose dofs, build.regressor.region_parts)")
+    add_network_arguments(parser, defaults.regressor, parts=True)  # --parts: every model of the comparison so
     args = parser.parse_args(argv)
     settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin,
-                       smoothing=args.smoothing, guess=args.guess,
-                       regressor=replace(network_settings(args), parts=args.parts))
+                       smoothing=args.smoothing, guess=args.guess, regressor=network_settings(args))
     reg_settings = settings.regressor
 
     started = time.perf_counter()
