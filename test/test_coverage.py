@@ -7,6 +7,7 @@ from agentdress_ros.garment.binding import region_weights
 from agentdress_ros.garment.coverage import (
     body_part_labels,
     boundary_distance,
+    cloth_over,
     cover_depth,
     covered_faces,
     garment_covered_faces,
@@ -193,6 +194,66 @@ def test_faces_under_the_cloth_in_every_pose_of_a_range_are_hidden_and_no_others
         assert (under != 0).all()  # cloth over every hidden face: no gap opens
     height = body.shape().vertices[body.body_faces].mean(axis=1)[:, 2]
     assert not fewer[(height > 1.6) | (height < 0.9)].any()  # head; legs below the hem
+
+
+def test_closest_points_on_a_mesh_match_a_brute_force_search_over_every_triangle():
+    """The closest-point kernel behind every coverage test: on a bumpy open surface, each point's closest point,
+    distance and barycentric weights equal the best over all triangles (Ericson's Voronoi-region test per triangle,
+    checked against trimesh's triangle kernel); a point's direction keeps only the triangles facing it."""
+    import trimesh
+
+    from agentdress_ros.garment.coverage import _closest_facing
+
+    rng = np.random.default_rng(3)
+    vertices, faces = grid(9, 0.4)
+    vertices[:, 2] = 0.03 * np.sin(9 * vertices[:, 0]) * np.cos(7 * vertices[:, 1])
+    points = rng.uniform([-0.25, -0.25, -0.08], [0.25, 0.25, 0.08], size=(300, 3))
+    closest, barycentric, distance, face_ids = _closest_facing(points, vertices, faces, reach=0.2)
+    corners = vertices[faces]
+    every = np.stack([trimesh.triangles.closest_point(corners, np.repeat(p[None], len(faces), 0)) for p in points])
+    best = np.linalg.norm(every - points[:, None], axis=2).min(axis=1)
+    np.testing.assert_allclose(distance, best, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(closest - points, axis=1), distance, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("pk,pkd->pd", barycentric, corners[face_ids]), closest, atol=1e-12)
+    normals = trimesh.Trimesh(vertices, faces, process=False).face_normals
+    down = np.tile([0.0, 0.0, -1.0], (len(points), 1))  # every triangle faces up: none faces down
+    assert (_closest_facing(points, vertices, faces, 0.2, down, normals)[3] == -1).all()
+
+
+def test_cloth_over_a_point_must_lie_along_its_normal_not_beside_it():
+    """cloth_over: a panel 2 cm above a skin point covers it; the same panel moved 15 cm to the side (its edge 5 cm
+    off the point's normal line, still within max_gap) does not, although surface_side finds it within reach."""
+    cloth, faces = grid(11, 0.2, z=0.02)
+    point, up = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    assert cloth_over(point, up, cloth, faces, edge_band=0.0)[0]
+    aside = cloth + [0.15, 0.0, 0.0]
+    assert surface_side(point, aside, faces, edge_band=0.0, directions=up)[0] != 0
+    assert not cloth_over(point, up, aside, faces, edge_band=0.0)[0]
+
+
+def test_faces_hidden_over_a_range_of_shapes_are_those_under_cloth_on_each(body, tshirt):
+    """always_covered over shapes: a subset of what one shape hides, and each face it hides lies under cloth on
+    every shape of the range (checked at the extremes of weight, where a T-shirt sits loosest and tightest)."""
+    from agentdress_ros.body import REFERENCE_SHAPE
+    from agentdress_ros.display.models import always_covered, garment_rest, pose_range, shape_range
+    from agentdress_ros.ros.garment_models import BodyModel, SkinnedGarmentModel
+
+    model = SkinnedGarmentModel(tshirt, body)
+    edges = boundary_distance(garment_rest(model, body), model.faces)  # the open edges' distances it judges by
+    poses = pose_range(("walk",), every=12)[:1]
+    shapes = shape_range()
+    assert len(shapes) == 9 and np.allclose(shapes[0], REFERENCE_SHAPE)
+    reference = always_covered([model], body, poses)
+    ranged = always_covered([model], body, poses, shapes=shapes)
+    assert ranged.sum() > 100 and not (ranged & ~reference).any()
+    for shape in shapes:
+        plain, twin = BodyModel(body, shape), model.clone()
+        twin.set_shape(shape)
+        skin = np.asarray(plain.synthesize(poses[0], np.zeros(3)), dtype=np.float64)
+        corners = skin[plain.faces[ranged]]
+        directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        cloth = np.asarray(twin.synthesize(poses[0], np.zeros(3)), dtype=np.float64)
+        assert cloth_over(corners.mean(axis=1), directions, cloth, twin.faces, edges=edges).all()
 
 
 def test_make_run_walk_draws_no_body_face_through_the_cloth():

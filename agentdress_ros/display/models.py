@@ -3,9 +3,10 @@ layered, a smooth mesh.
 
 `dress_for_display(models, body, layers, subdivision)` takes the node's models ({name: GarmentModel}, "body"
 included when it is published) and returns them ready for display, inner layers first:
-- the body without the faces its garments cover (agentdress_ros.garment.coverage), the band it keeps under their
-  edges sunk under the cloth (at rest, so it costs nothing per frame), and without the faces that stay inside a
-  garment's footprint over a range of poses (always_covered: computed once per set of garments, nothing per frame);
+- the body without the faces its garments cover (agentdress_ros.garment.coverage) where they hang at rest, deep
+  inside their open edges, and without the faces under cloth over a range of poses and shapes (always_covered:
+  computed once per set of garments, nothing per frame); the band it keeps under their edges sinks under the cloth
+  (at rest, so it costs nothing per frame);
 - each garment pushed out of the garment of the next lower layer (agentdress_ros.engine.layering), through a
   binding made once per shape, between the two garments as they hang at the rest pose on that shape (vertex ids
   and weights follow every pose: both garments follow the body), and lifted where a vertex of the lower garment
@@ -29,7 +30,7 @@ from ..garment.coverage import MARGIN, MAX_GAP, cover_depth, faces_with_vertices
 from ..ros.garment_models import BodyModel
 
 __all__ = ["POSE_RANGE", "TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "always_covered", "dress_for_display",
-           "garment_rest", "pose_range"]
+           "garment_rest", "pose_range", "shape_range"]
 
 #: Layer of each template, inside out: trousers under a shirt worn outside them. A higher layer is pushed out of
 #: the next lower one; equal layers are not layered. Tucked in: give the trousers a layer above the shirt's.
@@ -37,6 +38,9 @@ TEMPLATE_LAYERS = {"trousers": 1, "tshirt": 2, "longsleeve": 2}
 #: The range of poses over which body faces always under a garment are hidden too (pose_range, always_covered).
 POSE_RANGE = ("walk",)
 POSE_STEP = 3
+#: Footprint faces this far inside a garment's open edges (geodesically, at rest) are hidden without being checked
+#: over the pose and shape ranges: a collar or a hem moves, the middle of a panel stays on the body.
+EDGE_BAND = 0.03
 _CACHE: dict = {}
 _CACHE_SIZE = 32
 _SHAPE_CACHE: dict = {}  # per shape: kept apart, so that shapes coming and going never evict a topology's entries
@@ -103,13 +107,23 @@ class CoveredBodyModel(BodyModel):
         return (shape.vertices - self.sink[:, None] * normals)[self.body_ids]
 
 
+def _reference_drape(model, body) -> np.ndarray:
+    """The garment (V, 3) as the model dresses the rest pose on the reference shape (a twin: `model` keeps its own
+    shape and history)."""
+    twin = _base(model).clone()
+    twin.set_shape(REFERENCE_SHAPE)
+    return _draped_rest(twin, body)
+
+
 def _coverage(model, body):
-    """(hidden body faces (F,) bool over body.body_faces, sink (N,)) of one garment model (cached)."""
+    """(sink (N,), cover_depth (N,)) of one garment model over the hm08 vertices (cached): the footprint of
+    the cloth where it hangs at rest, not of its skinning rest (a database's T-shirt collar drops 8-12 cm at the
+    front from one to the other, and the neck it leaves would be drawn open)."""
 
     def make():
         shape = body.shape(REFERENCE_SHAPE)
-        depth = cover_depth(shape.vertices, body.body_faces, garment_rest(model, body), _base(model).faces)
-        return faces_with_vertices(body.body_faces, depth >= MARGIN), tuck_depth(depth)
+        depth = cover_depth(shape.vertices, body.body_faces, _reference_drape(model, body), _base(model).faces)
+        return tuck_depth(depth), depth
 
     return _cached(("coverage",) + _topology_key(model), make)
 
@@ -203,36 +217,51 @@ def pose_range(motions=POSE_RANGE, every: int = POSE_STEP):
     return np.concatenate([make_motion(name, fps=30.0).rotvecs[::every] for name in motions])
 
 
-def always_covered(garments, body, poses, hidden=None) -> np.ndarray:
-    """(F,) bool over body.body_faces: the faces whose centre lies inside a garment's footprint - under cloth facing
-    the skin's way, within MAX_GAP and at least MARGIN inside its open edges (coverage.surface_side) - in every pose
-    (P, B, 3) on the reference shape. Hiding them opens no gap over that range of poses: where such a face pokes out
-    of its garment, the cloth is right under it. garments: models (cloned here, the given ones are not touched);
-    hidden (F,): faces already hidden, not checked."""
-    from ..garment.coverage import boundary_distance, surface_side
+def shape_range() -> np.ndarray:
+    """(S, 6) the shapes body faces are hidden over: the reference shape and the outer training levels of each
+    training phenotype (build.shapes), where a garment sits loosest and tightest."""
+    from ..build.shapes import training_shapes
 
-    if len(poses) == 0:
+    shapes = training_shapes()
+    return np.concatenate([shapes[:1], shapes[1:].reshape(-1, 4, 6)[:, [0, 3]].reshape(-1, 6)])
+
+
+def always_covered(garments, body, poses, hidden=None, shapes=None) -> np.ndarray:
+    """(F,) bool over body.body_faces: the faces that lie under a garment - cloth over their centre, along their
+    normal, within MAX_GAP and at least MARGIN inside its open edges (coverage.cloth_over) - in every pose (P, B, 3)
+    on every shape (S, 6) (default: the reference shape). Hiding them opens no gap over that range: where such a
+    face pokes out of its garment, the cloth is right over it. garments: models (cloned here, the given ones are not
+    touched); hidden (F,): faces not checked (left False)."""
+    from ..garment.coverage import boundary_distance, cloth_over
+
+    shapes = np.asarray([REFERENCE_SHAPE] if shapes is None else shapes, dtype=np.float64)
+    if len(poses) == 0 or len(shapes) == 0:
         return np.zeros(len(body.body_faces), dtype=bool)
     twins, edges = [], []
     for garment in garments:
         twin = _base(garment).clone()
-        twin.set_shape(REFERENCE_SHAPE)
-        twin.reset()
         twins.append(twin)
         edges.append(boundary_distance(garment_rest(twin, body), twin.faces))
-    plain = BodyModel(body, REFERENCE_SHAPE)
+    plain = BodyModel(body, shapes[0])
     candidates = np.flatnonzero(~hidden) if hidden is not None else np.arange(len(plain.faces))
     root = np.zeros(3)
-    for rotvecs in poses:
-        skin = np.asarray(plain.synthesize(rotvecs, root), dtype=np.float64)
-        corners = skin[plain.faces[candidates]]
-        centres = corners.mean(axis=1)
-        directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        covered = np.zeros(len(candidates), dtype=bool)
-        for twin, edge in zip(twins, edges):
-            cloth = np.asarray(twin.synthesize(rotvecs, root), dtype=np.float64)
-            covered |= surface_side(centres, cloth, twin.faces, MAX_GAP, MARGIN, directions, edge) != 0
-        candidates = candidates[covered]
+    for shape in shapes:
+        plain.set_shape(shape)
+        for twin in twins:
+            twin.set_shape(shape)
+            twin.reset()
+        for rotvecs in poses:
+            skin = np.asarray(plain.synthesize(rotvecs, root), dtype=np.float64)
+            corners = skin[plain.faces[candidates]]
+            centres = corners.mean(axis=1)
+            directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            covered = np.zeros(len(candidates), dtype=bool)
+            for twin, edge in zip(twins, edges):
+                cloth = np.asarray(twin.synthesize(rotvecs, root), dtype=np.float64)
+                open_ = np.flatnonzero(~covered)  # each face against the next garment only while none covers it
+                covered[open_] = cloth_over(centres[open_], directions[open_], cloth, twin.faces, MAX_GAP, MARGIN,
+                                            edge)
+            candidates = candidates[covered]
     out = np.zeros(len(plain.faces), dtype=bool)
     out[candidates] = True
     return out
@@ -242,11 +271,15 @@ def _covered_body(model, garments: dict, body):
     key = tuple(sorted(_topology_key(g) for g in garments.values()))
     if getattr(model, "covered_by", None) == key:
         return model
-    hidden = np.zeros(len(body.body_faces), dtype=bool)
+    deep = np.zeros(len(body.body_faces), dtype=bool)
     sink = np.zeros(len(body.assets.template))
     for garment in garments.values():
-        faces, depth = _coverage(garment, body)
-        hidden |= faces
-        sink = np.maximum(sink, depth)
-    hidden |= _cached(("posed",) + key, lambda: always_covered(list(garments.values()), body, pose_range(), hidden))
+        tuck, depth = _coverage(garment, body)
+        deep |= faces_with_vertices(body.body_faces, depth >= EDGE_BAND)
+        sink = np.maximum(sink, tuck)
+    # the footprint's faces near an open edge (where a collar or a hem moves off the skin), and any other face, are
+    # hidden where they lie under cloth in every pose of the range on every shape of the range
+    hidden = deep | _cached(("posed",) + key, lambda: always_covered(list(garments.values()), body, pose_range(),
+                                                                       deep, shape_range()))
     return CoveredBodyModel(body, model.shape.beta, ~hidden, sink, key)
+

@@ -6,7 +6,8 @@ refinement asked:
 - skin through the cloth: drawn body faces whose centre lies outside a garment where it covers the body (the
   closest cloth facing the skin's way at least `edge_band` inside the garment's open edges), with the covered
   faces left out and the kept band sunk (as published), and with every body face drawn (before);
-- gaps: body faces left out whose centre no garment lies over (no cloth facing the skin's way within 6 cm);
+- gaps: body faces left out whose centre no garment lies over (no cloth facing the skin's way within 6 cm along
+  its normal: coverage.cloth_over);
 - layering: the share of T-shirt vertices inside the trousers where the trousers cover them, and of trousers vertices
   outside the T-shirt where the T-shirt covers them (through its triangles), with and without the layering;
 - cost per frame (median, one thread): the engine's synthesis, the layering push, the refinement.
@@ -121,7 +122,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
 def _gaps(skin, body_model, every_face, out: dict, models: dict) -> int:
     """How many of the body's faces left out (every_face (F, 3) less the drawn ones, as body_model's vertices skin
     (N, 3)) have no garment over their centre: the holes a viewer could see."""
-    from ..garment.coverage import surface_side
+    from ..garment.coverage import cloth_over
 
     drawn = {tuple(f) for f in np.sort(body_model.faces, axis=1).tolist()}
     hidden = every_face[[tuple(f) not in drawn for f in np.sort(every_face, axis=1).tolist()]]
@@ -131,7 +132,7 @@ def _gaps(skin, body_model, every_face, out: dict, models: dict) -> int:
     covered = np.zeros(len(hidden), dtype=bool)
     for name, model in models.items():
         if name != "body":
-            covered |= surface_side(centres, out[name], model.faces, edge_band=0.0, directions=directions) != 0
+            covered |= cloth_over(centres, directions, out[name], model.faces, edge_band=0.0)
     return int((~covered).sum())
 
 

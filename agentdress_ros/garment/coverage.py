@@ -11,6 +11,9 @@ Pure array functions. Shapes: N body vertices, F body triangles, V garment verti
 """
 from __future__ import annotations
 
+import itertools
+
+import numba
 import numpy as np
 import trimesh
 from scipy.sparse import coo_matrix
@@ -28,10 +31,12 @@ NO_EDGE = 1e9
 #: poke_through: a cloth point this much closer to another part of the body than to the face judged against it
 #: belongs to that part.
 OWNER_TOLERANCE = 0.01
+#: cloth_over: how far off a skin point's normal line the cloth over it may lie (plus its height above the point).
+LATERAL = 0.01
 
-__all__ = ["MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cover_depth", "covered_faces",
-           "covered_vertices", "faces_with_vertices", "garment_covered_faces", "poke_through", "surface_side",
-           "tuck_depth"]
+__all__ = ["LATERAL", "MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cloth_over",
+           "cover_depth", "covered_faces", "covered_vertices", "faces_with_vertices", "garment_covered_faces",
+           "poke_through", "surface_side", "tuck_depth"]
 
 
 def boundary_edges(faces: np.ndarray) -> np.ndarray:
@@ -55,21 +60,109 @@ def boundary_distance(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.minimum(dijkstra(graph, directed=False, indices=border, min_only=True), NO_EDGE)
 
 
+@numba.njit(cache=True, nogil=True)
+def _closest_on_triangles(points, vertices, faces, offsets, candidates, directions, normals, closest, barycentric,
+                          distance, face_ids):
+    """For each point p (P, 3): the closest point on the triangles candidates[offsets[p]:offsets[p + 1]] of faces
+    (G, 3) over vertices (V, 3), only those whose normal (G, 3) faces the point's direction (P, 3) when directions
+    has rows (else every candidate). Writes closest (P, 3), barycentric (P, 3), distance (P,) (inf: no candidate)
+    and face_ids (P,) (-1). The closest point on a triangle by its Voronoi regions (Ericson, Real-Time Collision
+    Detection, 5.1.5)."""
+    use_directions = directions.shape[0] > 0
+    for p in range(points.shape[0]):
+        px, py, pz = points[p, 0], points[p, 1], points[p, 2]
+        best = np.inf
+        face_ids[p] = -1
+        for i in range(offsets[p], offsets[p + 1]):
+            f = candidates[i]
+            if use_directions and (normals[f, 0] * directions[p, 0] + normals[f, 1] * directions[p, 1]
+                                   + normals[f, 2] * directions[p, 2]) <= 0.0:
+                continue
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+            abx, aby, abz = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
+            acx, acy, acz = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
+            apx, apy, apz = px - ax, py - ay, pz - az
+            d1 = abx * apx + aby * apy + abz * apz
+            d2 = acx * apx + acy * apy + acz * apz
+            bpx, bpy, bpz = apx - abx, apy - aby, apz - abz
+            d3 = abx * bpx + aby * bpy + abz * bpz
+            d4 = acx * bpx + acy * bpy + acz * bpz
+            cpx, cpy, cpz = apx - acx, apy - acy, apz - acz
+            d5 = abx * cpx + aby * cpy + abz * cpz
+            d6 = acx * cpx + acy * cpy + acz * cpz
+            va = d3 * d6 - d5 * d4
+            vb = d5 * d2 - d1 * d6
+            vc = d1 * d4 - d3 * d2
+            if d1 <= 0.0 and d2 <= 0.0:
+                v, w = 0.0, 0.0
+            elif d3 >= 0.0 and d4 <= d3:
+                v, w = 1.0, 0.0
+            elif d6 >= 0.0 and d5 <= d6:
+                v, w = 0.0, 1.0
+            elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+                v, w = d1 / (d1 - d3), 0.0
+            elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+                v, w = 0.0, d2 / (d2 - d6)
+            elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+                w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+                v = 1.0 - w
+            else:
+                denominator = 1.0 / (va + vb + vc)
+                v, w = vb * denominator, vc * denominator
+            qx = ax + abx * v + acx * w
+            qy = ay + aby * v + acy * w
+            qz = az + abz * v + acz * w
+            d = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
+            if d < best:
+                best = d
+                face_ids[p] = f
+                closest[p, 0], closest[p, 1], closest[p, 2] = qx, qy, qz
+                barycentric[p, 0], barycentric[p, 1], barycentric[p, 2] = 1.0 - v - w, v, w
+        distance[p] = np.sqrt(best)
+
+
+def _closest_facing(points, vertices, faces, reach, directions=None, normals=None):
+    """(closest (P, 3), barycentric (P, 3), distance (P,), face ids (P,)) of points (P, 3) on the triangles (G, 3)
+    whose centre lies within `reach` (a scalar, or (P,): e.g. each point's distance to the nearest vertex, which
+    bounds its distance to the surface) plus the largest triangle's radius: exact for points within `reach` of the
+    surface. With directions (P, 3) and face normals (G, 3), only triangles facing each point's direction count.
+    Distance inf and face -1 where no triangle qualifies."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    corners = vertices[faces]
+    centres = corners.mean(axis=1)
+    radius = float(np.linalg.norm(corners - centres[:, None], axis=2).max()) if len(faces) else 0.0
+    lists = cKDTree(centres).query_ball_point(points, np.asarray(reach) + radius) if len(points) else []
+    counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(points))
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    candidates = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(offsets[-1]))
+    closest = np.full((len(points), 3), np.nan)
+    barycentric = np.zeros((len(points), 3))
+    distance = np.full(len(points), np.inf)
+    face_ids = np.full(len(points), -1, dtype=np.int64)
+    no_rows = np.zeros((0, 3))
+    _closest_on_triangles(points, vertices, faces, offsets, candidates,
+                          no_rows if directions is None else np.ascontiguousarray(directions, dtype=np.float64),
+                          no_rows if normals is None else np.ascontiguousarray(normals, dtype=np.float64),
+                          closest, barycentric, distance, face_ids)
+    return closest, barycentric, distance, face_ids
+
+
 def _closest(points, vertices, faces, max_gap, edges=None):
     """Closest points of the surface (V, 3), (G, 3) to the points (P, 3) within about max_gap: (candidate ids (C,),
     closest (C, 3), distance (C,), face ids (C,), geodesic distance of the closest point to the open edges (C,),
     the surface's trimesh). edges: boundary_distance of the surface, if known."""
-    near = cKDTree(vertices).query(points, distance_upper_bound=max_gap + 0.05)[0]
+    reach = max_gap + 0.05
+    near = cKDTree(vertices).query(points, distance_upper_bound=reach)[0]
     candidates = np.flatnonzero(np.isfinite(near))
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     if len(candidates) == 0:
         return candidates, np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0), mesh
-    closest, distance, face_ids = trimesh.proximity.closest_point(mesh, points[candidates])
-    corners = faces[face_ids]
-    barycentric = np.clip(trimesh.triangles.points_to_barycentric(vertices[corners], closest), 0.0, 1.0)
-    barycentric /= barycentric.sum(axis=1, keepdims=True)
+    closest, barycentric, distance, face_ids = _closest_facing(points[candidates], vertices, faces, near[candidates])
     edges = boundary_distance(vertices, faces) if edges is None else edges
-    edge_distance = (edges[corners] * barycentric).sum(axis=1)
+    edge_distance = (edges[faces[face_ids]] * barycentric).sum(axis=1)
     return candidates, closest, distance, face_ids, edge_distance, mesh
 
 
@@ -159,24 +252,13 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
     if directions is not None and len(ids):
         own = np.asarray(directions, dtype=np.float64)[ids]
         facing = np.flatnonzero((normals[face_ids] * own).sum(axis=1) <= 0)
-        if len(facing):
-            centres = cKDTree(vertices[faces].mean(axis=1))
-            reach = max_gap + np.linalg.norm(vertices[faces] - vertices[faces].mean(axis=1, keepdims=True),
-                                             axis=2).max()
-            for k in facing:
-                candidates = np.array(centres.query_ball_point(points[ids[k]], reach), dtype=np.int64)
-                candidates = candidates[normals[candidates] @ own[k] > 0]
-                if len(candidates) == 0:
-                    distance[k] = np.inf
-                    continue
-                corners = vertices[faces[candidates]]
-                near = trimesh.triangles.closest_point(corners, np.repeat(points[ids[k]][None], len(corners), 0))
-                best = int(np.argmin(np.linalg.norm(near - points[ids[k]], axis=1)))
-                closest[k], face_ids[k] = near[best], candidates[best]
-                distance[k] = np.linalg.norm(near[best] - points[ids[k]])
-                weights = np.clip(trimesh.triangles.points_to_barycentric(corners[best][None], near[best][None])[0],
-                                  0.0, 1.0)
-                edge_distance[k] = edges[faces[candidates[best]]] @ (weights / weights.sum())
+        if len(facing):  # judged again against the closest triangle facing the point's way
+            near, barycentric, far, faced = _closest_facing(points[ids[facing]], vertices, faces, max_gap,
+                                                            own[facing], normals)
+            found = faced >= 0
+            distance[facing] = far
+            closest[facing[found]], face_ids[facing[found]] = near[found], faced[found]
+            edge_distance[facing[found]] = (edges[faces[faced[found]]] * barycentric[found]).sum(axis=1)
     side = np.where(((points[ids] - closest) * normals[face_ids]).sum(axis=1) > 0, 1, -1)
     out[ids] = np.where((distance <= max_gap) & (edge_distance >= edge_band), side, 0)
     if return_closest:
@@ -184,6 +266,23 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
         judged[ids] = closest
         return out, judged
     return out
+
+
+def cloth_over(points, directions, vertices, faces, max_gap: float = MAX_GAP, edge_band: float = MARGIN,
+               edges=None, lateral: float = LATERAL) -> np.ndarray:
+    """(P,) bool: cloth (V, 3), (G, 3) lies over each point (P, 3) - along its outward direction (P, 3), where a
+    viewer outside would look at it: surface_side covers the point and the cloth point it is judged against is off
+    the point's normal line by at most `lateral` plus its height along that line (a 45-degree cone). The closest
+    facing cloth alone is not enough: the chest panel 4 cm below the throat is within max_gap of the neck's skin
+    but shows it."""
+    points = np.asarray(points, dtype=np.float64)
+    sides, closest = surface_side(points, vertices, faces, max_gap, edge_band, directions, edges, return_closest=True)
+    normals = np.asarray(directions, dtype=np.float64)
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-20)
+    offset = np.nan_to_num(closest - points)
+    along = (offset * normals).sum(axis=1)
+    off_line = np.linalg.norm(offset - along[:, None] * normals, axis=1)
+    return (sides != 0) & (off_line <= lateral + np.abs(along))
 
 
 def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max_gap: float = MAX_GAP,
