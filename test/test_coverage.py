@@ -256,6 +256,25 @@ def test_faces_hidden_over_a_range_of_shapes_are_those_under_cloth_on_each(body,
         assert cloth_over(corners.mean(axis=1), directions, cloth, twin.faces, edges=edges).all()
 
 
+def test_a_hole_is_seen_from_outside_unless_something_drawn_lies_in_front_of_it():
+    """display_check.seen_from_outside on analytic geometry: a point in a hole of a wall, facing the viewer (-y), is
+    seen; a panel 5 cm in front of another hole hides it; a point behind the wall, or facing away, is not seen."""
+    from agentdress_ros.evaluate.display_check import seen_from_outside
+
+    wall, wall_faces = grid(21, 1.0)
+    wall = wall[:, [0, 2, 1]]  # the xz plane at y = 0, seen from -y
+    centres = wall[wall_faces].mean(axis=1)
+    wall_faces = wall_faces[np.abs(centres - [0.1, 0.0, 0.1]).max(axis=1) > 0.06]  # a hole at (0.1, 0, 0.1)
+    wall_faces = wall_faces[np.abs(wall[wall_faces].mean(axis=1)).max(axis=1) > 0.06]  # and one at the origin
+    panel, panel_faces = grid(5, 0.2)
+    panel = panel[:, [0, 2, 1]] - [0.0, 0.05, 0.0]
+    hole = np.array([[0.1, 0.0, 0.1], [0.0, 0.0, 0.0], [0.3, 0.02, 0.3], [-0.3, 0.0, -0.3]])
+    normals = np.array([[0.0, -1.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
+    front = np.array([[0.0, 1.0, 0.0]])  # looking along +y, at the wall's -y side
+    seen = seen_from_outside([(wall, wall_faces), (panel, panel_faces)], hole, normals, directions=front)
+    np.testing.assert_array_equal(seen, [True, False, False, False])  # beside the panel; under it; behind; away
+
+
 def test_make_run_walk_draws_no_body_face_through_the_cloth():
     """The display check on what `make run` publishes (shipped databases, body with its covered faces left out),
     over the walk at the heavier sweep shape where the last faces poked out: none drawn pokes through, and the

@@ -7,7 +7,8 @@ refinement asked:
   closest cloth facing the skin's way at least `edge_band` inside the garment's open edges), with the covered
   faces left out and the kept band sunk (as published), and with every body face drawn (before);
 - gaps: body faces left out whose centre no garment lies over (no cloth facing the skin's way within 6 cm along
-  its normal: coverage.cloth_over);
+  its normal: coverage.cloth_over), and those of them a viewer sees from outside (holes: facing one of 16 views
+  around the agent with nothing drawn in front of them on a 4 mm depth buffer);
 - layering: the share of T-shirt vertices inside the trousers where the trousers cover them, and of trousers vertices
   outside the T-shirt where the T-shirt covers them (through its triangles), with and without the layering;
 - cost per frame (median, one thread): the engine's synthesis, the layering push, the refinement.
@@ -20,6 +21,7 @@ import sys
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -59,7 +61,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             plain = BodyModel(body)  # before: every face drawn, nothing sunk
             every_face = plain.faces
             counts = {"drawn_poking": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0,
-                      "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0}
+                      "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0, "seen": 0}
             timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}
             for beta in shapes:
                 model_set = build_model_set(replace(model_set.scene, beta=beta), body, model_set)
@@ -82,7 +84,9 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                     plain_skin = np.array(plain.synthesize(rotvecs, root), dtype=np.float64) if layered else None
                     drawn = models["body"].faces
                     if layered:  # the body is the same without layering
-                        counts["gaps"] += _gaps(skin, models["body"], every_face, out, models)
+                        gaps, seen = _gaps(skin, models["body"], every_face, out, models)
+                        counts["gaps"] += gaps
+                        counts["seen"] += seen
                     for name in ("tshirt", "trousers"):
                         garment, faces = out[name], models[name].faces
                         counts["drawn_poking"] += int(poke_through(skin, drawn, garment, faces, edge_band=edge_band,
@@ -109,6 +113,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                 "drawn_body_faces_poking_per_frame": counts["drawn_poking"] / n,
                 "all_body_faces_poking_per_frame": counts["poking_all_faces"] / n if layered else None,
                 "hidden_body_faces_without_cloth_per_frame": counts["gaps"] / n if layered else None,
+                "hidden_body_faces_seen_from_outside_per_frame": counts["seen"] / n if layered else None,
                 "tshirt_vertices_inside_trousers_pct": 100.0 * counts["outer_inside_inner"] / counts["outer_vertices"],
                 "trousers_vertices_through_tshirt_pct": 100.0 * counts["inner_through_outer"]
                 / max(counts["inner_under_outer"], 1),
@@ -119,9 +124,10 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
     return report
 
 
-def _gaps(skin, body_model, every_face, out: dict, models: dict) -> int:
-    """How many of the body's faces left out (every_face (F, 3) less the drawn ones, as body_model's vertices skin
-    (N, 3)) have no garment over their centre: the holes a viewer could see."""
+def _gaps(skin, body_model, every_face, out: dict, models: dict) -> tuple:
+    """(how many of the body's faces left out - every_face (F, 3) less the drawn ones, as body_model's vertices
+    skin (N, 3) - have no garment over their centre along their normal, how many of them a viewer outside sees:
+    seen_from_outside over everything drawn)."""
     from ..garment.coverage import cloth_over
 
     drawn = {tuple(f) for f in np.sort(body_model.faces, axis=1).tolist()}
@@ -133,7 +139,70 @@ def _gaps(skin, body_model, every_face, out: dict, models: dict) -> int:
     for name, model in models.items():
         if name != "body":
             covered |= cloth_over(centres, directions, out[name], model.faces, edge_band=0.0)
-    return int((~covered).sum())
+    meshes = [(out[name], model.faces) for name, model in models.items()]
+    return int((~covered).sum()), int(seen_from_outside(meshes, centres, directions).sum())
+
+
+@numba.njit(cache=True, nogil=True)
+def _depth_buffer(screen, depth, faces, buffer):
+    """buffer (H, W): the nearest depth (V,) of the triangles faces (G, 3) over each pixel whose centre they cover,
+    screen (V, 2) in pixels."""
+    height, width = buffer.shape
+    for t in range(faces.shape[0]):
+        a, b, c = faces[t, 0], faces[t, 1], faces[t, 2]
+        x0, y0, x1, y1, x2, y2 = screen[a, 0], screen[a, 1], screen[b, 0], screen[b, 1], screen[c, 0], screen[c, 1]
+        det = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+        if abs(det) < 1e-12:
+            continue
+        left, right = max(int(np.floor(min(x0, x1, x2))), 0), min(int(np.ceil(max(x0, x1, x2))), width - 1)
+        top, bottom = max(int(np.floor(min(y0, y1, y2))), 0), min(int(np.ceil(max(y0, y1, y2))), height - 1)
+        for py in range(top, bottom + 1):
+            for px in range(left, right + 1):
+                sx, sy = px + 0.5, py + 0.5
+                l0 = ((y1 - y2) * (sx - x2) + (x2 - x1) * (sy - y2)) / det
+                l1 = ((y2 - y0) * (sx - x2) + (x0 - x2) * (sy - y2)) / det
+                l2 = 1.0 - l0 - l1
+                if l0 >= 0.0 and l1 >= 0.0 and l2 >= 0.0:
+                    z = l0 * depth[a] + l1 * depth[b] + l2 * depth[c]
+                    if z < buffer[py, px]:
+                        buffer[py, px] = z
+
+
+def view_directions(azimuths: int = 8, elevations=(0.0, 0.5)) -> np.ndarray:
+    """(A x E, 3) unit directions a viewer looks along: around the agent (Z up) at each elevation (radians, looking
+    down)."""
+    angles = 2 * np.pi * np.arange(azimuths) / azimuths
+    return np.array([[np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), -np.sin(e)] for e in elevations for a in angles])
+
+
+def seen_from_outside(meshes, points, normals, pixel: float = 0.004, tolerance: float = 0.006,
+                      directions=None) -> np.ndarray:
+    """(P,) bool: points (P, 3) with outward normals (P, 3) - centres of body faces left out - that a viewer sees
+    from one of the directions (view_directions): facing it, with nothing of meshes [(vertices (V, 3), faces (G,
+    3)), ...] (what is drawn) in front of them by more than `tolerance` on an orthographic depth buffer of `pixel`
+    metres. What a hole in the drawn surface looks like from outside."""
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    everything = np.concatenate([np.asarray(v, dtype=np.float64) for v, _ in meshes])
+    centre = everything.mean(axis=0)
+    seen = np.zeros(len(points), dtype=bool)
+    for look in view_directions() if directions is None else directions:
+        up = np.array([0.0, 0.0, 1.0]) - look * look[2]
+        up /= np.linalg.norm(up)
+        right = np.cross(look, up)
+        axes = np.stack([right / pixel, -up / pixel], axis=1)  # metres to pixels, rows down
+        corner = (everything - centre) @ axes
+        origin = corner.min(axis=0) - 2
+        width, height = (corner.max(axis=0) - origin + 3).astype(int)
+        buffer = np.full((height, width), np.inf)
+        for vertices, faces in meshes:
+            local = np.asarray(vertices, dtype=np.float64) - centre
+            _depth_buffer(np.ascontiguousarray(local @ axes - origin), np.ascontiguousarray(local @ look),
+                          np.ascontiguousarray(faces, dtype=np.int64), buffer)
+        local = points - centre
+        pixels = np.clip((local @ axes - origin).astype(int), 0, [width - 1, height - 1])
+        seen |= (normals @ look < 0) & (local @ look < buffer[pixels[:, 1], pixels[:, 0]] - tolerance)
+    return seen
 
 
 def main(argv=None) -> int:

@@ -31,10 +31,10 @@ NO_EDGE = 1e9
 #: poke_through: a cloth point this much closer to another part of the body than to the face judged against it
 #: belongs to that part.
 OWNER_TOLERANCE = 0.01
-#: cloth_over: how far off a skin point's normal line the cloth over it may lie (plus its height above the point).
-LATERAL = 0.01
+#: cloth_over: how far behind a skin point its cloth may lie and still cover it (the skin poking through).
+BELOW = 0.03
 
-__all__ = ["LATERAL", "MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cloth_over",
+__all__ = ["BELOW", "MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cloth_over",
            "cover_depth", "covered_faces", "covered_vertices", "faces_with_vertices", "garment_covered_faces",
            "poke_through", "surface_side", "tuck_depth"]
 
@@ -122,6 +122,57 @@ def _closest_on_triangles(points, vertices, faces, offsets, candidates, directio
         distance[p] = np.sqrt(best)
 
 
+def _triangles_near(points, vertices, faces, reach):
+    """(offsets (P + 1,), candidates) CSR: for each point (P, 3), the triangles (G, 3) whose centre lies within
+    `reach` (scalar or (P,)) plus the largest triangle's radius - every triangle with a point within `reach`."""
+    corners = vertices[faces]
+    centres = corners.mean(axis=1)
+    radius = float(np.linalg.norm(corners - centres[:, None], axis=2).max()) if len(faces) else 0.0
+    lists = cKDTree(centres).query_ball_point(points, np.asarray(reach) + radius) if len(points) else []
+    counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(points))
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return offsets, np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(offsets[-1]))
+
+
+@numba.njit(cache=True, nogil=True)
+def _rays_hit(points, directions, vertices, faces, normals, offsets, candidates, near, far, edges, edge_band, out):
+    """out (P,) bool: the ray from each point (P, 3) along its unit direction (P, 3) meets, between `near` and
+    `far` along it, one of its candidate triangles (CSR offsets/candidates) that faces the same way (normals
+    (G, 3)) at a point at least edge_band inside the open edges (edges (V,): boundary_distance, interpolated).
+    Moeller-Trumbore per triangle."""
+    for p in range(points.shape[0]):
+        ox, oy, oz = points[p, 0], points[p, 1], points[p, 2]
+        dx, dy, dz = directions[p, 0], directions[p, 1], directions[p, 2]
+        out[p] = False
+        for i in range(offsets[p], offsets[p + 1]):
+            f = candidates[i]
+            if normals[f, 0] * dx + normals[f, 1] * dy + normals[f, 2] * dz <= 0.0:
+                continue
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+            e1x, e1y, e1z = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
+            e2x, e2y, e2z = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
+            px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+            det = e1x * px + e1y * py + e1z * pz
+            if abs(det) < 1e-20:
+                continue
+            inverse = 1.0 / det
+            tx, ty, tz = ox - ax, oy - ay, oz - az
+            u = (tx * px + ty * py + tz * pz) * inverse
+            if u < 0.0 or u > 1.0:
+                continue
+            qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+            v = (dx * qx + dy * qy + dz * qz) * inverse
+            if v < 0.0 or u + v > 1.0:
+                continue
+            t = (e2x * qx + e2y * qy + e2z * qz) * inverse
+            if t < near or t > far:
+                continue
+            if (1.0 - u - v) * edges[a] + u * edges[b] + v * edges[c] >= edge_band:
+                out[p] = True
+                break
+
+
 def _closest_facing(points, vertices, faces, reach, directions=None, normals=None):
     """(closest (P, 3), barycentric (P, 3), distance (P,), face ids (P,)) of points (P, 3) on the triangles (G, 3)
     whose centre lies within `reach` (a scalar, or (P,): e.g. each point's distance to the nearest vertex, which
@@ -131,13 +182,7 @@ def _closest_facing(points, vertices, faces, reach, directions=None, normals=Non
     points = np.ascontiguousarray(points, dtype=np.float64)
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     faces = np.ascontiguousarray(faces, dtype=np.int64)
-    corners = vertices[faces]
-    centres = corners.mean(axis=1)
-    radius = float(np.linalg.norm(corners - centres[:, None], axis=2).max()) if len(faces) else 0.0
-    lists = cKDTree(centres).query_ball_point(points, np.asarray(reach) + radius) if len(points) else []
-    counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(points))
-    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    candidates = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(offsets[-1]))
+    offsets, candidates = _triangles_near(points, vertices, faces, reach)
     closest = np.full((len(points), 3), np.nan)
     barycentric = np.zeros((len(points), 3))
     distance = np.full(len(points), np.inf)
@@ -269,20 +314,23 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
 
 
 def cloth_over(points, directions, vertices, faces, max_gap: float = MAX_GAP, edge_band: float = MARGIN,
-               edges=None, lateral: float = LATERAL) -> np.ndarray:
-    """(P,) bool: cloth (V, 3), (G, 3) lies over each point (P, 3) - along its outward direction (P, 3), where a
-    viewer outside would look at it: surface_side covers the point and the cloth point it is judged against is off
-    the point's normal line by at most `lateral` plus its height along that line (a 45-degree cone). The closest
-    facing cloth alone is not enough: the chest panel 4 cm below the throat is within max_gap of the neck's skin
-    but shows it."""
-    points = np.asarray(points, dtype=np.float64)
-    sides, closest = surface_side(points, vertices, faces, max_gap, edge_band, directions, edges, return_closest=True)
-    normals = np.asarray(directions, dtype=np.float64)
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-20)
-    offset = np.nan_to_num(closest - points)
-    along = (offset * normals).sum(axis=1)
-    off_line = np.linalg.norm(offset - along[:, None] * normals, axis=1)
-    return (sides != 0) & (off_line <= lateral + np.abs(along))
+               edges=None, below: float = BELOW) -> np.ndarray:
+    """(P,) bool: cloth (V, 3), (G, 3) lies over each point (P, 3) - the line from the point along its outward
+    direction (P, 3), where a viewer outside looks at it, meets cloth facing the same way within max_gap in front of
+    it (or up to `below` behind it: skin poking through its cloth), at least edge_band inside the cloth's open edges.
+    The closest facing cloth is not enough: the chest panel 4 cm below the throat is within max_gap of the neck's
+    skin but shows it."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    unit = np.asarray(directions, dtype=np.float64)
+    unit = np.ascontiguousarray(unit / np.maximum(np.linalg.norm(unit, axis=1, keepdims=True), 1e-20))
+    edges = boundary_distance(vertices, faces) if edges is None else np.asarray(edges, dtype=np.float64)
+    normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    offsets, candidates = _triangles_near(points, vertices, faces, max(max_gap, below))
+    out = np.zeros(len(points), dtype=np.bool_)
+    _rays_hit(points, unit, vertices, faces, normals, offsets, candidates, -below, max_gap, edges, edge_band, out)
+    return out
 
 
 def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max_gap: float = MAX_GAP,
