@@ -12,6 +12,7 @@ from agentdress_ros.garment.coverage import (
     covered_faces,
     garment_covered_faces,
     poke_through,
+    sloped,
     surface_side,
     tuck_depth,
 )
@@ -254,6 +255,17 @@ def test_faces_hidden_over_a_range_of_shapes_are_those_under_cloth_on_each(body,
         directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         cloth = np.asarray(twin.synthesize(poses[0], np.zeros(3)), dtype=np.float64)
         assert cloth_over(corners.mean(axis=1), directions, cloth, twin.faces, edges=edges).all()
+
+
+def test_a_sink_that_steps_becomes_a_ramp_of_the_given_slope_and_never_deepens():
+    """sloped: 1.5 cm of sink on one half of a flat sheet, none on the other, becomes min(1.5 cm, slope x distance
+    to the unsunk half along the edges); a sink that already rises that gently is left as it is."""
+    vertices, faces = grid(21, 1.0)  # 5 cm spacing, rows along x
+    step = np.where(vertices[:, 0] > 0, 0.015, 0.0)
+    ramp = sloped(step, vertices, faces, slope=0.5)
+    np.testing.assert_allclose(ramp, np.minimum(0.015, 0.5 * np.maximum(vertices[:, 0], 0.0)), atol=1e-9)
+    gentle = np.clip(0.1 * vertices[:, 0], 0.0, None)
+    np.testing.assert_allclose(sloped(gentle, vertices, faces, slope=0.5), gentle, atol=1e-9)
 
 
 def test_a_hole_is_seen_from_outside_unless_something_drawn_lies_in_front_of_it():

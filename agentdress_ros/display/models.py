@@ -26,7 +26,7 @@ from ..body import REFERENCE_SHAPE
 from ..engine.layering import bind_layers, bind_under, lift_over_inner, push_out_of_inner
 from ..engine.subdivision import LoopSubdivision
 from ..garment.binding import vertex_normals
-from ..garment.coverage import MARGIN, MAX_GAP, cover_depth, faces_with_vertices, tuck_depth
+from ..garment.coverage import MARGIN, MAX_GAP, cover_depth, faces_with_vertices, sloped, tuck_depth
 from ..ros.garment_models import BodyModel
 
 __all__ = ["POSE_RANGE", "TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "always_covered", "dress_for_display",
@@ -41,6 +41,9 @@ POSE_STEP = 3
 #: Footprint faces this far inside a garment's open edges (geodesically, at rest) are hidden without being checked
 #: over the pose and shape ranges: a collar or a hem moves, the middle of a panel stays on the body.
 EDGE_BAND = 0.03
+#: The sink changes by at most this much per metre over the skin (coverage.sloped): where the closest cloth of two
+#: neighbouring neck vertices lies on either side of a collar, one sank 1.5 cm and the other not, a crease.
+SLOPE = 0.5
 _CACHE: dict = {}
 _CACHE_SIZE = 32
 _SHAPE_CACHE: dict = {}  # per shape: kept apart, so that shapes coming and going never evict a topology's entries
@@ -281,5 +284,6 @@ def _covered_body(model, garments: dict, body):
     # hidden where they lie under cloth in every pose of the range on every shape of the range
     hidden = deep | _cached(("posed",) + key, lambda: always_covered(list(garments.values()), body, pose_range(),
                                                                        deep, shape_range()))
+    sink = sloped(sink, body.shape(REFERENCE_SHAPE).vertices, body.body_faces, SLOPE)
     return CoveredBodyModel(body, model.shape.beta, ~hidden, sink, key)
 

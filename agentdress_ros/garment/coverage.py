@@ -36,7 +36,7 @@ BELOW = 0.03
 
 __all__ = ["BELOW", "MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cloth_over",
            "cover_depth", "covered_faces", "covered_vertices", "faces_with_vertices", "garment_covered_faces",
-           "poke_through", "surface_side", "tuck_depth"]
+           "poke_through", "sloped", "surface_side", "tuck_depth"]
 
 
 def boundary_edges(faces: np.ndarray) -> np.ndarray:
@@ -240,6 +240,23 @@ def tuck_depth(depth: np.ndarray, margin: float = MARGIN, tuck: float = TUCK) ->
     its edges, rising linearly to `tuck` at `margin` inside them (where the faces are hidden anyway). The band of
     body faces kept under a hem then sits below the cloth instead of cutting through its flat triangles."""
     return np.where(depth < 0, 0.0, tuck * np.clip(depth / max(margin, 1e-9), 0.0, 1.0))
+
+
+def sloped(sink: np.ndarray, vertices: np.ndarray, faces: np.ndarray, slope: float = TUCK / MARGIN) -> np.ndarray:
+    """(N,) the largest field under sink (N,) that changes by at most `slope` per metre along the edges of the
+    surface (N, 3), (F, 3): min over u of sink[u] + slope * geodesic(u, v), by one Dijkstra run from a virtual
+    source joined to each vertex u at sink[u] / slope. A sunk vertex next to one left in place would cut a crease
+    into the drawn skin (where the closest cloth of two neighbours lies on opposite sides of a collar); the
+    default slope is tuck_depth's own, so a hem's band keeps its ramp."""
+    n = len(vertices)
+    edges = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    rows = np.concatenate([edges[:, 0], edges[:, 1], np.full(n, n)])
+    cols = np.concatenate([edges[:, 1], edges[:, 0], np.arange(n)])
+    weights = np.concatenate([length, length, np.maximum(sink, 0.0) / slope + 1e-12])  # 0 would drop the edge
+    graph = coo_matrix((weights, (rows, cols)), shape=(n + 1, n + 1)).tocsr()
+    reach = dijkstra(graph, directed=True, indices=n)[:n]
+    return np.minimum(sink, np.where(np.isfinite(reach), slope * reach, sink))
 
 
 def faces_with_vertices(faces: np.ndarray, hidden: np.ndarray, every: bool = True) -> np.ndarray:
