@@ -26,7 +26,7 @@ from ..body import REFERENCE_SHAPE
 from ..engine.layering import bind_layers, bind_under, lift_over_inner, push_out_of_inner
 from ..engine.subdivision import LoopSubdivision
 from ..garment.binding import vertex_normals
-from ..garment.coverage import MARGIN, MAX_GAP, cover_depth, faces_with_vertices, sloped, tuck_depth
+from ..garment.coverage import MAX_GAP, cover_depth, faces_with_vertices, sloped, tuck_depth
 from ..ros.garment_models import BodyModel
 
 __all__ = ["POSE_RANGE", "TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "always_covered", "dress_for_display",
@@ -41,6 +41,9 @@ POSE_STEP = 3
 #: Footprint faces this far inside a garment's open edges (geodesically, at rest) are hidden without being checked
 #: over the pose and shape ranges: a collar or a hem moves, the middle of a panel stays on the body.
 EDGE_BAND = 0.03
+#: The others stay hidden only under cloth this far inside its open edges in every pose and shape of the ranges:
+#: looking down into a collar that stands off the neck shows the skin a few centimetres under it.
+CHECK_BAND = 0.05
 #: The sink changes by at most this much per metre over the skin (coverage.sloped): where the closest cloth of two
 #: neighbouring neck vertices lies on either side of a collar, one sank 1.5 cm and the other not, a crease.
 SLOPE = 0.5
@@ -231,7 +234,7 @@ def shape_range() -> np.ndarray:
 
 def always_covered(garments, body, poses, hidden=None, shapes=None) -> np.ndarray:
     """(F,) bool over body.body_faces: the faces that lie under a garment - cloth over their centre, along their
-    normal, within MAX_GAP and at least MARGIN inside its open edges (coverage.cloth_over) - in every pose (P, B, 3)
+    normal, within MAX_GAP and at least CHECK_BAND inside its open edges (coverage.cloth_over) - in every pose (P, B, 3)
     on every shape (S, 6) (default: the reference shape). Hiding them opens no gap over that range: where such a
     face pokes out of its garment, the cloth is right over it. garments: models (cloned here, the given ones are not
     touched); hidden (F,): faces not checked (left False)."""
@@ -262,8 +265,8 @@ def always_covered(garments, body, poses, hidden=None, shapes=None) -> np.ndarra
             for twin, edge in zip(twins, edges):
                 cloth = np.asarray(twin.synthesize(rotvecs, root), dtype=np.float64)
                 open_ = np.flatnonzero(~covered)  # each face against the next garment only while none covers it
-                covered[open_] = cloth_over(centres[open_], directions[open_], cloth, twin.faces, MAX_GAP, MARGIN,
-                                            edge)
+                covered[open_] = cloth_over(centres[open_], directions[open_], cloth, twin.faces, MAX_GAP,
+                                            CHECK_BAND, edge)
             candidates = candidates[covered]
     out = np.zeros(len(plain.faces), dtype=bool)
     out[candidates] = True
