@@ -14,9 +14,9 @@ from agentdress_ros.build.sequences import load_sequence_pack
 from agentdress_ros.build.regressor import RegressorSettings, pose_dofs, predict
 from agentdress_ros.engine import Engine, EngineConfig
 from agentdress_ros.engine.database import KDSM_ARRAYS, DatabaseError, KdsmModel, as_stored, read_database
-from agentdress_ros.garment.binding import vertex_normals
+from agentdress_ros.garment.binding import mesh_edges, vertex_normals
 from agentdress_ros.kdsm.embedding import KdsmPoser, embed, unembed
-from agentdress_ros.kdsm.inverse import candidate_parents, graph_laplacian, harmonic_fill, mesh_edges, prune_candidates
+from agentdress_ros.kdsm.inverse import candidate_parents, graph_laplacian, harmonic_fill, prune_candidates
 from agentdress_ros.kdsm.lattice import lattice_tet_nodes, locate_lattice_tets, node_positions, signed_volumes
 from agentdress_ros.kdsm.mesh import (KDSMSettings, build_kdsm, diffused_weights, load_kdsm, save_kdsm,
                                       spatially_ordered)

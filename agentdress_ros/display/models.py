@@ -251,8 +251,9 @@ def always_covered(garments, body, poses, hidden=None, shapes=None) -> np.ndarra
     plain = BodyModel(body, shapes[0])
     candidates = np.flatnonzero(~hidden) if hidden is not None else np.arange(len(plain.faces))
     root = np.zeros(3)
-    for shape in shapes:
-        plain.set_shape(shape)
+    for k, shape in enumerate(shapes):
+        if k:  # the first is the one it was made on
+            plain.set_shape(shape)
         for twin in twins:
             twin.set_shape(shape)
             twin.reset()

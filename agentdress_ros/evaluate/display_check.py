@@ -69,6 +69,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                 models = model_set.models
                 for model in models.values():
                     model.reset()
+                left_out = _left_out(every_face, models["body"].faces)
                 for f in frames:
                     rotvecs, root = motion.rotvecs[f], motion.root_translation[f]
                     out = {}
@@ -84,7 +85,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                     plain_skin = np.array(plain.synthesize(rotvecs, root), dtype=np.float64) if layered else None
                     drawn = models["body"].faces
                     if layered:  # the body is the same without layering
-                        gaps, seen = _gaps(skin, models["body"], every_face, out, models)
+                        gaps, seen = _gaps(skin, left_out, out, models)
                         counts["gaps"] += gaps
                         counts["seen"] += seen
                     for name in ("tshirt", "trousers"):
@@ -124,14 +125,18 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
     return report
 
 
-def _gaps(skin, body_model, every_face, out: dict, models: dict) -> tuple:
-    """(how many of the body's faces left out - every_face (F, 3) less the drawn ones, as body_model's vertices
-    skin (N, 3) - have no garment over their centre along their normal, how many of them a viewer outside sees:
-    seen_from_outside over everything drawn)."""
+def _left_out(every_face: np.ndarray, drawn: np.ndarray) -> np.ndarray:
+    """(H, 3) the faces of every_face (F, 3) that drawn (D, 3) leaves out (either winding)."""
+    kept = {tuple(f) for f in np.sort(drawn, axis=1).tolist()}
+    return every_face[[tuple(f) not in kept for f in np.sort(every_face, axis=1).tolist()]]
+
+
+def _gaps(skin, hidden, out: dict, models: dict) -> tuple:
+    """(how many of the body's faces left out - hidden (H, 3) over its vertices skin (N, 3) - have no garment over
+    their centre along their normal, how many of them a viewer outside sees: seen_from_outside over everything
+    drawn)."""
     from ..garment.coverage import cloth_over
 
-    drawn = {tuple(f) for f in np.sort(body_model.faces, axis=1).tolist()}
-    hidden = every_face[[tuple(f) not in drawn for f in np.sort(every_face, axis=1).tolist()]]
     corners = skin[hidden]
     centres = corners.mean(axis=1)
     directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])

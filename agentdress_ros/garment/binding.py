@@ -33,6 +33,12 @@ class SurfaceBinding:
     offset: np.ndarray  # (V,) float64 metres along the interpolated surface normal
 
 
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) unique undirected edges of a triangle mesh (F, 3)."""
+    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return np.unique(np.sort(pairs, axis=1), axis=0)
+
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (N, 3) of a triangle mesh (vertices (N, 3), faces (F, 3))."""
     corners = vertices[faces]

@@ -15,12 +15,11 @@ import itertools
 
 import numba
 import numpy as np
-import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from .binding import vertex_normals
+from .binding import mesh_edges, vertex_normals
 
 #: Defaults: a band of 1.5 cm of body kept under every garment edge; cloth up to 6 cm off the skin still covers it.
 MARGIN = 0.015
@@ -53,11 +52,21 @@ def boundary_distance(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     border = np.unique(boundary_edges(faces))
     if len(border) == 0:
         return np.full(len(vertices), NO_EDGE)
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    edges = np.unique(edges, axis=0)
-    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    edges, length = _edge_lengths(vertices, faces)
     graph = coo_matrix((length, (edges[:, 0], edges[:, 1])), shape=(len(vertices),) * 2).tocsr()
     return np.minimum(dijkstra(graph, directed=False, indices=border, min_only=True), NO_EDGE)
+
+
+def _edge_lengths(vertices: np.ndarray, faces: np.ndarray) -> tuple:
+    """(edges (E, 2), their lengths (E,)) of a triangle mesh (V, 3), (F, 3): the graph of its geodesic fields."""
+    edges = mesh_edges(faces)
+    return edges, np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+
+
+def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) the triangles' normals, not unit (every test here reads only their signs against other vectors)."""
+    corners = vertices[faces]
+    return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -197,18 +206,16 @@ def _closest_facing(points, vertices, faces, reach, directions=None, normals=Non
 
 def _closest(points, vertices, faces, max_gap, edges=None):
     """Closest points of the surface (V, 3), (G, 3) to the points (P, 3) within about max_gap: (candidate ids (C,),
-    closest (C, 3), distance (C,), face ids (C,), geodesic distance of the closest point to the open edges (C,),
-    the surface's trimesh). edges: boundary_distance of the surface, if known."""
-    reach = max_gap + 0.05
-    near = cKDTree(vertices).query(points, distance_upper_bound=reach)[0]
+    closest (C, 3), distance (C,), face ids (C,), geodesic distance of the closest point to the open edges (C,)).
+    edges: boundary_distance of the surface, if known."""
+    near = cKDTree(vertices).query(points, distance_upper_bound=max_gap + 0.05)[0]
     candidates = np.flatnonzero(np.isfinite(near))
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
     if len(candidates) == 0:
-        return candidates, np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0), mesh
+        return candidates, np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0)
     closest, barycentric, distance, face_ids = _closest_facing(points[candidates], vertices, faces, near[candidates])
     edges = boundary_distance(vertices, faces) if edges is None else edges
     edge_distance = (edges[faces[face_ids]] * barycentric).sum(axis=1)
-    return candidates, closest, distance, face_ids, edge_distance, mesh
+    return candidates, closest, distance, face_ids, edge_distance
 
 
 def cover_depth(body_vertices, body_faces, garment_vertices, garment_faces, max_gap: float = MAX_GAP) -> np.ndarray:
@@ -219,7 +226,7 @@ def cover_depth(body_vertices, body_faces, garment_vertices, garment_faces, max_
     body_vertices = np.asarray(body_vertices, dtype=np.float64)
     out = np.full(len(body_vertices), -1.0)
     used = np.unique(body_faces)
-    ids, closest, distance, _, edge_distance, _ = _closest(
+    ids, closest, distance, _, edge_distance = _closest(
         body_vertices[used], np.asarray(garment_vertices, dtype=np.float64), garment_faces, max_gap)
     ids = used[ids]
     normals = vertex_normals(body_vertices, body_faces)[ids]
@@ -249,8 +256,7 @@ def sloped(sink: np.ndarray, vertices: np.ndarray, faces: np.ndarray, slope: flo
     into the drawn skin (where the closest cloth of two neighbours lies on opposite sides of a collar); the
     default slope is tuck_depth's own, so a hem's band keeps its ramp."""
     n = len(vertices)
-    edges = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
-    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    edges, length = _edge_lengths(vertices, faces)
     rows = np.concatenate([edges[:, 0], edges[:, 1], np.full(n, n)])
     cols = np.concatenate([edges[:, 1], edges[:, 0], np.arange(n)])
     weights = np.concatenate([length, length, np.maximum(sink, 0.0) / slope + 1e-12])  # 0 would drop the edge
@@ -309,8 +315,8 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
     faces = np.asarray(faces, dtype=np.int64)
     edges = boundary_distance(vertices, faces) if edges is None else edges
     out = np.zeros(len(points), dtype=np.int8)
-    ids, closest, distance, face_ids, edge_distance, mesh = _closest(points, vertices, faces, max_gap, edges)
-    normals = mesh.face_normals
+    ids, closest, distance, face_ids, edge_distance = _closest(points, vertices, faces, max_gap, edges)
+    normals = _face_normals(vertices, faces)
     if directions is not None and len(ids):
         own = np.asarray(directions, dtype=np.float64)[ids]
         facing = np.flatnonzero((normals[face_ids] * own).sum(axis=1) <= 0)
@@ -343,7 +349,7 @@ def cloth_over(points, directions, vertices, faces, max_gap: float = MAX_GAP, ed
     unit = np.asarray(directions, dtype=np.float64)
     unit = np.ascontiguousarray(unit / np.maximum(np.linalg.norm(unit, axis=1, keepdims=True), 1e-20))
     edges = boundary_distance(vertices, faces) if edges is None else np.asarray(edges, dtype=np.float64)
-    normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    normals = _face_normals(vertices, faces)
     offsets, candidates = _triangles_near(points, vertices, faces, max(max_gap, below))
     out = np.zeros(len(points), dtype=np.bool_)
     _rays_hit(points, unit, vertices, faces, normals, offsets, candidates, -below, max_gap, edges, edge_band, out)

@@ -254,12 +254,6 @@ def region_groups(body, skin_indices, skin_weights, minimum: float = 0.05):
     return face_groups, point_groups
 
 
-def mesh_edges(faces: np.ndarray) -> np.ndarray:
-    """(E, 2) unique undirected edges of a triangle mesh (F, 3)."""
-    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(pairs, axis=1), axis=0)
-
-
 def graph_laplacian(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     """Uniform (graph) Laplacian D - A (V, V) of a mesh's edges (E, 2)."""
     i, j = edges[:, 0], edges[:, 1]

@@ -18,9 +18,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..body.kinematics import forward_kinematics, linear_blend_skinning
+from ..garment.binding import mesh_edges
 from .embedding import KdsmPoser
-from .inverse import (FALLBACK, STATUS_NAMES, candidate_parents, graph_laplacian, hybrid_material, mesh_edges,
-                      method1_material, region_groups, surface_offset_guess)
+from .inverse import (FALLBACK, STATUS_NAMES, candidate_parents, graph_laplacian, hybrid_material, method1_material,
+                      region_groups, surface_offset_guess)
 from .mesh import KDSM, KDSMSettings, build_kdsm, save_kdsm
 
 #: fixed: the rest embedding (d = 0, Fig. 3); method1/method2/hybrid_paper: Sec. 5 as written (1 cm);
