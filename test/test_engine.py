@@ -137,7 +137,8 @@ def test_penetration_handling_lifts_a_garment_pushed_into_the_body(db, body):
 def test_body_projection_puts_every_vertex_outside_its_nearest_candidate(db, body):
     """A garment sunk 2 cm into the body: with projection, each output vertex lies at least the margin in front of
     the nearest of its K candidate body vertices (skinned in numpy here; nearest to the unprojected vertex), moved
-    along that vertex's normal only; a fork may turn it off (the plain output) but not change K."""
+    along the posed normal of that vertex's largest incident face only; a fork may turn it off (the plain output)
+    but not change K."""
     from dataclasses import replace
 
     from agentdress_ros.garment.binding import vertex_normals
@@ -154,20 +155,22 @@ def test_body_projection_puts_every_vertex_outside_its_nearest_candidate(db, bod
     off = engine.fork(projection=0).synthesize(pose).copy()
     np.testing.assert_allclose(off, Engine(sunk_db, body, replace(config, projection=0)).synthesize(pose))
     transforms, _ = body.pose(reference, np.asarray(pose, dtype=np.float64))
-    ids = engine.projection_vertices
-    weights = body.skin_weights[ids][:, :, None, None]
-    blend = (weights * transforms[body.skin_indices[ids]]).sum(axis=1)  # (U, 3, 4)
-    points = np.einsum("uij,uj->ui", blend[:, :, :3], reference.vertices[ids]) + blend[:, :, 3]
-    rotated = np.einsum("uij,uj->ui", blend[:, :, :3], normals[ids])
+    points = body.posed_vertices(reference, transforms)  # every hm08 vertex
+    faces = body.body_faces
+    face_normals = np.cross(points[faces[:, 1]] - points[faces[:, 0]], points[faces[:, 2]] - points[faces[:, 0]])
+    rest_area = np.linalg.norm(np.cross(reference.vertices[faces[:, 1]] - reference.vertices[faces[:, 0]],
+                                        reference.vertices[faces[:, 2]] - reference.vertices[faces[:, 0]]), axis=1)
+    nearest = np.array([c[np.linalg.norm(off[v] - points[c], axis=1).argmin()]
+                        for v, c in enumerate(engine.projection_candidates(v) for v in range(len(off)))])
+    largest = [np.flatnonzero((faces == u).any(axis=1)) for u in nearest]
+    rotated = np.array([face_normals[f[rest_area[f].argmax()]] for f in largest])  # that face's posed normal
     rotated /= np.linalg.norm(rotated, axis=1, keepdims=True)
-    local = [np.searchsorted(ids, engine.projection_candidates(v)) for v in range(len(off))]  # into points
-    nearest = np.array([c[np.linalg.norm(off[v] - points[c], axis=1).argmin()] for v, c in enumerate(local)])
-    depth = ((on - points[nearest]) * rotated[nearest]).sum(axis=1)
+    depth = ((on - points[nearest]) * rotated).sum(axis=1)
     assert depth.min() >= config.penetration_margin - 1e-6
     moved = np.linalg.norm(on - off, axis=1) > 1e-9
     assert 0.2 < moved.mean() < 1.0  # sunk 2 cm: most vertices come out
     np.testing.assert_allclose(depth[moved], config.penetration_margin, atol=1e-6)  # ...to the margin exactly
-    along = np.cross(on[moved] - off[moved], rotated[nearest[moved]])  # along their nearest's normal
+    along = np.cross(on[moved] - off[moved], rotated[moved])  # along their nearest's normal
     assert np.abs(along).max() < 1e-6
     with pytest.raises(ValueError, match="candidates"):
         engine.fork(projection=4)
@@ -191,6 +194,12 @@ def test_body_projection_searches_what_each_example_pose_brings_near(db, body):
         assert len(candidates) == len(set(candidates))  # each searched once
         assert set(candidates) == expected[v]
     assert any(len(e) > 4 for e in expected)  # the example poses add candidates
+    wider = Engine(db, body, EngineConfig(projection=4, projection_examples=3))
+    found = [set(wider.projection_candidates(v)) for v in range(db.n_vertices)]
+    assert all(found[v] >= expected[v] for v in range(db.n_vertices))  # the nearest at each pose and two more
+    assert sum(map(len, found)) > sum(map(len, expected))
+    rest_only = Engine(db, body, EngineConfig(projection=4, projection_examples=0))
+    assert all(len(rest_only.projection_candidates(v)) == 4 for v in range(db.n_vertices))
 
 
 def test_examples_pose_model_reproduces_an_example_at_its_pose(db, body):

@@ -169,3 +169,23 @@ def test_dressing_poses_body_and_garments_together(body, garments):
     # a new shape refits the garments and keeps the buffers' sizes
     sleeve.set_shape([1.0, 0.7, 0.9, 0.9, 0.9, 0.5])
     assert sleeve.garment_vertices[0].shape == (garment.n_vertices, 3)
+
+
+def test_largest_face_corners_give_each_vertex_its_largest_faces_outward_normal():
+    """On a closed convex mesh, (p_next - p) x (p_previous - p) of every vertex's corners points outward and is the
+    normal of the largest face at that vertex, stretched or not (the body projection poses these corners)."""
+    from agentdress_ros.garment.binding import largest_face_corners
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    vertices = mesh.vertices * [1.0, 2.0, 0.5]  # unequal faces
+    faces = np.asarray(mesh.faces)
+    corners = largest_face_corners(vertices, faces)
+    normals = np.cross(vertices[corners[:, 0]] - vertices, vertices[corners[:, 1]] - vertices)
+    assert ((normals * vertices).sum(axis=1) > 0).all()  # outward
+    areas = np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                                    vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
+    for v in range(len(vertices)):
+        incident = np.flatnonzero((faces == v).any(axis=1))
+        assert set(corners[v]) | {v} == set(faces[incident[areas[incident].argmax()]])
+    lonely = largest_face_corners(np.vstack([vertices, [[9.0, 9.0, 9.0]]]), faces)
+    assert (lonely[-1] == len(vertices)).all()  # a vertex of no face names itself: a zero normal

@@ -21,11 +21,11 @@ from scipy.spatial import cKDTree
 
 from ..body import AnnyBody, quads_to_triangles
 from ..body.kinematics import forward_kinematics, linear_blend_skinning, linear_blend_skinning_into
-from ..garment.binding import SurfaceBinding, evaluate_surface_binding, vertex_normals
+from ..garment.binding import SurfaceBinding, evaluate_surface_binding, largest_face_corners, vertex_normals
 from .config import TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
 from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, project_out_of_body,
-                      region_neighbours, shape_anchors, skin_with_normals, synthesize_vertices, unpose)
+                      region_neighbours, shape_anchors, synthesize_vertices, unpose)
 from .pose_models import PoseModelContext, RegressorDecoder, canonical_poses, make_pose_model
 
 N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-zero regions
@@ -66,8 +66,7 @@ class _ShapeState:
     body_points: np.ndarray  # (V, 3) bound body vertex at rest
     body_normals: np.ndarray  # (V, 3)
     rest: np.ndarray  # (V, 3) config dtype: the garment fitted to beta at rest (its binding; beta0's rest without one)
-    projection_points: np.ndarray | None = None  # (U, 3) the projection's candidate body vertices at rest, and
-    projection_normals: np.ndarray | None = None  # (U, 3) their normals (config.projection > 0)
+    projection_points: np.ndarray | None = None  # (U', 3) the projection's body vertices at rest (projection > 0)
 
 
 def select_database(db: Database, config: EngineConfig) -> Database:
@@ -285,10 +284,12 @@ class Engine:
     def _bind_projection(self, surface, rest_tree):
         """config.projection > 0: the candidate body vertices of each output row, as CSR (offsets (V + 1,), local
         indices into the U body vertices any row names, with their skinning): its `projection` nearest at rest
-        (beta0), and its nearest at each pose-model example pose (the example drape against the body posed there).
-        A pose brings body parts to the garment that none at rest is near (the arm at the torso's side, the upper
-        back under a collar): README "Speed vs accuracy" measures what the examples' candidates add. rest_tree: the
-        surface vertices at rest (beta0), as a cKDTree."""
+        (beta0), and its `projection_examples` nearest at each pose-model example pose (the example drape against
+        the body posed there). A pose brings body parts near that none at rest is near (the arm at the torso's side,
+        the upper back under a collar): README "Speed vs accuracy" measures what the examples' candidates add.
+        Each candidate's normal comes from its largest incident body face at rest: the face's other two corners
+        (partners, (U, 2) local rows) follow the candidates as rows [U, U') where they are no candidate themselves.
+        rest_tree: the surface vertices at rest (beta0), as a cKDTree."""
         k = int(self.config.projection)
         if k <= 0:
             self.projection_vertices = None
@@ -296,21 +297,30 @@ class Engine:
         db, reference = self.db, self.reference
         _, nearest = rest_tree.query(np.asarray(db.rest, dtype=np.float64), k=k)
         columns = [np.asarray(nearest).reshape(self.n_vertices, k)]
-        for pose, drape in zip(db.example_poses, db.example_drapes):
+        per_example = int(self.config.projection_examples)
+        for pose, drape in zip(db.example_poses, db.example_drapes) if per_example > 0 else ():
             transforms, _ = self.body.pose(reference, np.asarray(pose, dtype=np.float64))
             posed = self.body.posed_vertices(reference, transforms)[surface]
-            columns.append(cKDTree(posed).query(np.asarray(drape, dtype=np.float64))[1][:, None])
+            found = cKDTree(posed).query(np.asarray(drape, dtype=np.float64), k=per_example)[1]
+            columns.append(np.asarray(found).reshape(self.n_vertices, per_example))
         table = np.empty((self.n_vertices, sum(c.shape[1] for c in columns)), dtype=np.int64)
         table[self.order] = surface[np.concatenate(columns, axis=1)]  # output row order
         table.sort(axis=1)
         distinct = np.ones(table.shape, dtype=bool)
         distinct[:, 1:] = table[:, 1:] != table[:, :-1]
         ids, local = np.unique(table[distinct], return_inverse=True)
-        self.projection_vertices = ids  # (U,) hm08 ids
+        corners = largest_face_corners(reference.vertices, self.body.body_faces)[ids]  # (U, 2) hm08 ids
+        extra = np.setdiff1d(corners, ids)
+        rows = np.concatenate([ids, extra])
+        self.projection_vertices = rows  # (U',) hm08 ids: the U candidates, then the partners that are none
         self._projection_offsets = np.concatenate([[0], np.cumsum(distinct.sum(axis=1))]).astype(np.int32)
         self._projection_candidates = np.ascontiguousarray(local, dtype=np.int32)
-        self._projection_skin = (np.ascontiguousarray(self.body.skin_indices[ids]),
-                                 np.ascontiguousarray(self.body.skin_weights[ids], dtype=self.dtype))
+        row_of = np.full(len(reference.vertices), -1, dtype=np.int32)
+        row_of[rows] = np.arange(len(rows))
+        self._projection_partners = np.ascontiguousarray(row_of[corners])
+        self._projection_skin = (np.ascontiguousarray(self.body.skin_indices[rows]),
+                                 np.ascontiguousarray(self.body.skin_weights[rows], dtype=self.dtype))
+        self._projection_count = len(ids)
 
     def projection_candidates(self, row: int) -> np.ndarray:
         """The body vertices (hm08 ids) the projection searches for output row `row` (config.projection > 0)."""
@@ -343,7 +353,8 @@ class Engine:
         self._residual_inputs = np.zeros(3 * b + len(self.db.beta0))  # the shape residual's: pose dofs, phenotypes
         if self.projection_vertices is not None:
             self._projected = np.zeros((len(self.projection_vertices), 3), dtype=self.dtype)
-            self._projected_normals = np.zeros_like(self._projected)
+            self._projected_stamps = np.full(len(self.projection_vertices) - self._projection_count, -1)
+            self._projected_frame = 0
         rest = np.empty((v, 3), dtype=self.dtype)
         rest[self.order] = self.db.rest
         self._buffers = (rest, rest.copy())  # double buffer: the last good frame survives a bad one
@@ -442,9 +453,9 @@ class Engine:
                       self._residual, base, self._base0, self._anchor_transforms0)
         if self._fold is not None:
             deltas += self._fold
-        projection = (None, None) if self.projection_vertices is None else tuple(
-            np.ascontiguousarray(a[self.projection_vertices], dtype=self.dtype) for a in (shape.vertices, normals))
-        self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals, rest, *projection)
+        projection = None if self.projection_vertices is None else np.ascontiguousarray(
+            shape.vertices[self.projection_vertices], dtype=self.dtype)
+        self._state = _ShapeState(effective, heads, deltas, clearances, body_points, body_normals, rest, projection)
         report = ShapeReport(bool(clamped_names), clamped_names, requested, effective, time.perf_counter() - start,
                              model_beta, held_names)
         self.shape_report = report
@@ -567,10 +578,11 @@ class Engine:
             block_push(self._zero, *blocks, state.clearances, self._clearance, self._push)
             bad = apply_push(self._push, self._normals, self.order, out)
         if self.projection_vertices is not None and not bad:
-            skin_with_normals(state.projection_points, state.projection_normals, *self._projection_skin,
-                              self.transforms, self._projected, self._projected_normals)
-            bad = project_out_of_body(out, self._projection_offsets, self._projection_candidates, self._projected,
-                                      self._projected_normals, self.config.penetration_margin)
+            self._projected_frame += 1
+            bad = project_out_of_body(out, self._projection_offsets, self._projection_candidates,
+                                      self._projection_partners, state.projection_points, *self._projection_skin,
+                                      self.transforms, self._projected, self._projected_stamps,
+                                      self._projected_frame, self.config.penetration_margin)
         if bad:
             self.bad_frames += 1
             return self._buffers[self._current]

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..body.kinematics import rotvec_to_matrix
+from ..body.kinematics import rotvec_to_matrix, skin_point
 
 TWO_PI = 2.0 * np.pi
 
@@ -334,30 +334,31 @@ def _blended_transform(transforms, skin_indices, skin_weights, v):
     return a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
-def skin_with_normals(points, normals, skin_indices, skin_weights, transforms, posed, posed_normals):
-    """posed, posed_normals (U, 3) = points, normals (U, 3) skinned with their own skin_indices, skin_weights (U, J)
-    and transforms (B, 3, 4); the normals rotated by the blended 3x3, not renormalised (a blend of rotations shortens
-    them a little): project_out_of_body normalises the one it uses, a few candidates of many."""
-    for u in range(points.shape[0]):
-        a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz = _blended_transform(transforms, skin_indices,
-                                                                                      skin_weights, u)
-        px, py, pz = points[u, 0], points[u, 1], points[u, 2]
-        posed[u, 0] = a00 * px + a01 * py + a02 * pz + tx
-        posed[u, 1] = a10 * px + a11 * py + a12 * pz + ty
-        posed[u, 2] = a20 * px + a21 * py + a22 * pz + tz
-        mx, my, mz = normals[u, 0], normals[u, 1], normals[u, 2]
-        posed_normals[u, 0] = a00 * mx + a01 * my + a02 * mz
-        posed_normals[u, 1] = a10 * mx + a11 * my + a12 * mz
-        posed_normals[u, 2] = a20 * mx + a21 * my + a22 * mz
+@numba.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _skin_row(points, skin_indices, skin_weights, transforms, u, posed):
+    """posed[u] = points[u] (U, 3) skinned with row u of skin_indices, skin_weights (U, I) and transforms (B, 3, 4)."""
+    posed[u, 0], posed[u, 1], posed[u, 2] = skin_point(points[u, 0], points[u, 1], points[u, 2], skin_indices,
+                                                       skin_weights, u, transforms)
 
 
 @numba.njit(cache=True, nogil=True)
-def project_out_of_body(out, offsets, candidates, posed, posed_normals, margin):
+def project_out_of_body(out, offsets, candidates, partners, points, skin_indices, skin_weights, transforms, posed,
+                        stamps, frame, margin):
     """In place: each garment vertex out[v] (V, 3) closer than `margin` in front of (or behind) the nearest of its
-    candidate body vertices candidates[offsets[v]:offsets[v + 1]] (CSR, indices into posed, posed_normals (U, 3) of
-    skin_with_normals, normals of any length) moves out along that vertex's unit normal to `margin`. Compiled without
-    fastmath (its isfinite checks must stay). Returns the count of non-finite output vertices."""
+    candidate body vertices moves out to `margin` along the posed body surface's normal there. Returns the count of
+    non-finite output vertices.
+
+    Body rows (U', 3): points (rest positions at the current shape), skin_indices/skin_weights (U', I), posed (U',
+    3) the frame's skinned positions. Rows [0, U) are the candidates (CSR: candidates[offsets[v]:offsets[v + 1]],
+    int32 rows < U), all skinned here first; the normal at the nearest candidate u is that of its largest incident
+    body face at rest, (p_a - p_u) x (p_b - p_u) for its other corners a, b = partners[u] in winding order, posed -
+    the skinned rest normal tilts where the skin folds (armpit, crotch) and lets cloth stay inside there (README
+    "Speed vs accuracy"). Partner rows [U, U') that are no candidate are skinned on first use in a frame: stamps
+    (U' - U,) int64 hold the frame number that last skinned them. Compiled without fastmath (its isfinite checks
+    must stay)."""
+    n_candidates = posed.shape[0] - stamps.shape[0]
+    for u in range(n_candidates):
+        _skin_row(points, skin_indices, skin_weights, transforms, u, posed)
     bad = 0
     for v in range(out.shape[0]):
         x, y, z = out[v, 0], out[v, 1], out[v, 2]
@@ -369,14 +370,23 @@ def project_out_of_body(out, offsets, candidates, posed, posed_normals, margin):
             d2 = dx * dx + dy * dy + dz * dz
             if d2 < best:
                 best, nearest = d2, u
-        nx, ny, nz = posed_normals[nearest, 0], posed_normals[nearest, 1], posed_normals[nearest, 2]
-        scale = 1.0 / max(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)  # skinned, not yet unit
-        nx, ny, nz = nx * scale, ny * scale, nz * scale
-        h = (x - posed[nearest, 0]) * nx + (y - posed[nearest, 1]) * ny + (z - posed[nearest, 2]) * nz
-        if h < margin:
-            out[v, 0] = x + (margin - h) * nx
-            out[v, 1] = y + (margin - h) * ny
-            out[v, 2] = z + (margin - h) * nz
+        a, b = partners[nearest, 0], partners[nearest, 1]
+        for w in (a, b):
+            if w >= n_candidates and stamps[w - n_candidates] != frame:
+                _skin_row(points, skin_indices, skin_weights, transforms, w, posed)
+                stamps[w - n_candidates] = frame
+        px, py, pz = posed[nearest, 0], posed[nearest, 1], posed[nearest, 2]
+        ax, ay, az = posed[a, 0] - px, posed[a, 1] - py, posed[a, 2] - pz
+        bx, by, bz = posed[b, 0] - px, posed[b, 1] - py, posed[b, 2] - pz
+        nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        length = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if length > 1e-12:  # a face collapsed by the pose gives no direction: the vertex stays
+            nx, ny, nz = nx / length, ny / length, nz / length
+            h = (x - px) * nx + (y - py) * ny + (z - pz) * nz
+            if h < margin:
+                out[v, 0] = x + (margin - h) * nx
+                out[v, 1] = y + (margin - h) * ny
+                out[v, 2] = z + (margin - h) * nz
         if not (np.isfinite(out[v, 0]) and np.isfinite(out[v, 1]) and np.isfinite(out[v, 2])):
             bad += 1
     return bad

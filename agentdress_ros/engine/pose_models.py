@@ -512,8 +512,8 @@ class KdsmPoseModel:
             raise ValueError("pose model 'kdsm': the database's garment is not the one its KDSM group was trained "
                              f"for (a rest vertex {distance.max():.3g} m from the group's)")
         model = model.vertex_rows(ids)
-        self.displacements = RegressorPoseModel(replace(context, db=replace(db, regressor=model.regressor),
-                                                        dtype=np.float64))
+        # d in the run dtype: float32 halves the MLP's and decoder's cost; the lattice needs no more than 0.1 um
+        self.displacements = RegressorPoseModel(replace(context, db=replace(db, regressor=model.regressor)))
         # Z order (kdsm.mesh.spatially_ordered): a KDSM stored before builds made it so reads faster
         self.poser = KdsmPoser(spatially_ordered(model.kdsm), model.rest, db.skin_indices, db.skin_weights)
         self.heads = np.ascontiguousarray(context.reference_heads, dtype=np.float64)

@@ -51,6 +51,26 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return normals / np.where(length > 0, length, 1.0)
 
 
+def largest_face_corners(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 2): for every vertex, the other two corners (next, previous in the winding) of its largest incident face
+    (the first of equal ones; vertices (N, 3), faces (F, 3)), so (p_next - p) x (p_previous - p) is that face's outward normal wherever the
+    mesh is posed. A vertex of no face names itself twice (a zero normal)."""
+    corners = vertices[faces]
+    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    owner = faces.reshape(-1)  # face f's corner c at 3 f + c
+    following = faces[:, [1, 2, 0]].reshape(-1)
+    preceding = faces[:, [2, 0, 1]].reshape(-1)
+    face = np.repeat(np.arange(len(faces)), 3)
+    # by vertex, then area, then face index falling: each vertex's largest face last, the first of equal ones (the
+    # two halves of a quad)
+    last = np.lexsort((-face, np.repeat(area, 3), owner))
+    pick = last[np.flatnonzero(np.r_[owner[last][1:] != owner[last][:-1], True])]
+    out = np.repeat(np.arange(len(vertices))[:, None], 2, axis=1)
+    out[owner[pick], 0] = following[pick]
+    out[owner[pick], 1] = preceding[pick]
+    return out
+
+
 def project_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray):
     """Closest surface point of every point (V, 3): (triangle vertex ids (V, 3), barycentric (V, 3), distance (V,))."""
     mesh = trimesh.Trimesh(vertices, faces, process=False)

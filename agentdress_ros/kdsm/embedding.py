@@ -198,7 +198,7 @@ class KdsmPoser:
                           self._mark, self._skinned, out)
             self.fallback_count = int(self.rest_embedding.outside.sum())
             return out
-        displacements = np.asarray(displacements, dtype=np.float64)
+        displacements = np.asarray(displacements)  # float32 or float64: pose_displaced is compiled for either
         self.fallback_count = pose_displaced(self.rest, displacements, k.origin, k.spacing, k.dims, k.lattice_tets,
                                              k.vertices, k.tets, k.class_inverse, k.skin_indices, k.skin_weights,
                                              transforms, self.skin_indices, self.skin_weights, self._mark,
