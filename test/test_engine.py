@@ -181,7 +181,7 @@ def test_body_projection_searches_what_each_example_pose_brings_near(db, body):
     the body vertex nearest to its example drape vertex there (a pose brings body parts near that rest does not)."""
     from scipy.spatial import cKDTree
 
-    engine = Engine(db, body, EngineConfig(projection=4))
+    engine = Engine(db, body, EngineConfig(projection=4, projection_examples=1, projection_spacing=0.0))
     reference, surface = body.shape(db.beta0), body.body_vertex_ids
     expected = [set(surface[n]) for n in cKDTree(reference.vertices[surface]).query(np.asarray(db.rest, float), k=4)[1]]
     for pose, drape in zip(db.example_poses, db.example_drapes):
@@ -194,12 +194,20 @@ def test_body_projection_searches_what_each_example_pose_brings_near(db, body):
         assert len(candidates) == len(set(candidates))  # each searched once
         assert set(candidates) == expected[v]
     assert any(len(e) > 4 for e in expected)  # the example poses add candidates
-    wider = Engine(db, body, EngineConfig(projection=4, projection_examples=3))
+    wider = Engine(db, body, EngineConfig(projection=4, projection_examples=3, projection_spacing=0.0))
     found = [set(wider.projection_candidates(v)) for v in range(db.n_vertices)]
     assert all(found[v] >= expected[v] for v in range(db.n_vertices))  # the nearest at each pose and two more
     assert sum(map(len, found)) > sum(map(len, expected))
-    rest_only = Engine(db, body, EngineConfig(projection=4, projection_examples=0))
+    rest_only = Engine(db, body, EngineConfig(projection=4, projection_examples=0, projection_spacing=0.0))
     assert all(len(rest_only.projection_candidates(v)) == 4 for v in range(db.n_vertices))
+    spaced = Engine(db, body, EngineConfig(projection=4, projection_examples=3, projection_spacing=0.03))
+    nearest = cKDTree(reference.vertices[surface]).query(np.asarray(db.rest, float))[1]
+    for v in range(db.n_vertices):
+        kept = spaced.projection_candidates(v)
+        assert set(kept) <= found[v] and surface[nearest[v]] in kept  # a subset, the nearest at rest first
+        apart = np.linalg.norm(reference.vertices[kept][:, None] - reference.vertices[kept][None], axis=2)
+        assert apart[np.triu_indices(len(kept), 1)].min(initial=1.0) >= 0.03
+    assert sum(len(spaced.projection_candidates(v)) for v in range(db.n_vertices)) < sum(map(len, found)) / 2
 
 
 def test_examples_pose_model_reproduces_an_example_at_its_pose(db, body):

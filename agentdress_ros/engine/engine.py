@@ -25,7 +25,7 @@ from ..garment.binding import SurfaceBinding, evaluate_surface_binding, largest_
 from .config import TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
 from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, project_out_of_body,
-                      region_neighbours, shape_anchors, synthesize_vertices, unpose)
+                      region_neighbours, shape_anchors, spaced_candidates, synthesize_vertices, unpose)
 from .pose_models import PoseModelContext, RegressorDecoder, canonical_poses, make_pose_model
 
 N_REGION_SLOTS = 4  # a vertex has at most 4 bone influences, so at most 4 non-zero regions
@@ -287,6 +287,8 @@ class Engine:
         (beta0), and its `projection_examples` nearest at each pose-model example pose (the example drape against
         the body posed there). A pose brings body parts near that none at rest is near (the arm at the torso's side,
         the upper back under a collar): README "Speed vs accuracy" measures what the examples' candidates add.
+        With projection_spacing > 0 a row keeps no two candidates closer than that at rest (the first of them, in
+        the order above): neighbours a few millimetres apart add little that the posed normal does not.
         Each candidate's normal comes from its largest incident body face at rest: the face's other two corners
         (partners, (U, 2) local rows) follow the candidates as rows [U, U') where they are no candidate themselves.
         rest_tree: the surface vertices at rest (beta0), as a cKDTree."""
@@ -304,10 +306,12 @@ class Engine:
             found = cKDTree(posed).query(np.asarray(drape, dtype=np.float64), k=per_example)[1]
             columns.append(np.asarray(found).reshape(self.n_vertices, per_example))
         table = np.empty((self.n_vertices, sum(c.shape[1] for c in columns)), dtype=np.int64)
-        table[self.order] = surface[np.concatenate(columns, axis=1)]  # output row order
-        table.sort(axis=1)
-        distinct = np.ones(table.shape, dtype=bool)
-        distinct[:, 1:] = table[:, 1:] != table[:, :-1]
+        table[self.order] = surface[np.concatenate(columns, axis=1)]  # output row order, nearest at rest first
+        keep = spaced_candidates(table, reference.vertices, float(self.config.projection_spacing),
+                                 np.zeros(table.shape, dtype=np.bool_))
+        table = np.where(keep, table, -1)
+        table.sort(axis=1)  # ascending ids: neighbouring rows read neighbouring posed points
+        distinct = table >= 0
         ids, local = np.unique(table[distinct], return_inverse=True)
         corners = largest_face_corners(reference.vertices, self.body.body_faces)[ids]  # (U, 2) hm08 ids
         extra = np.setdiff1d(corners, ids)

@@ -334,6 +334,27 @@ def _blended_transform(transforms, skin_indices, skin_weights, v):
     return a00, a01, a02, a10, a11, a12, a20, a21, a22, tx, ty, tz
 
 
+@numba.njit(cache=True, nogil=True)
+def spaced_candidates(table, points, spacing, keep):
+    """keep (V, C) bool: for each row of table (V, C) (ids into points (N, 3), in order of preference), the ids that
+    lie at least `spacing` from every id kept before them in the row (a repeated id is never kept twice)."""
+    limit = spacing * spacing
+    for v in range(table.shape[0]):
+        for i in range(table.shape[1]):
+            u = table[v, i]
+            keep[v, i] = True
+            for j in range(i):
+                if keep[v, j]:
+                    w = table[v, j]
+                    dx = points[u, 0] - points[w, 0]
+                    dy = points[u, 1] - points[w, 1]
+                    dz = points[u, 2] - points[w, 2]
+                    if u == w or dx * dx + dy * dy + dz * dz < limit:
+                        keep[v, i] = False
+                        break
+    return keep
+
+
 @numba.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _skin_row(points, skin_indices, skin_weights, transforms, u, posed):
     """posed[u] = points[u] (U, 3) skinned with row u of skin_indices, skin_weights (U, I) and transforms (B, 3, 4)."""

@@ -36,10 +36,8 @@ class Row:
 
 
 #: Candidate body vertices at rest of the body-projection rows (EngineConfig.projection; each vertex also searches
-#: its nearest at every example pose): the node default's.
+#: its projection_examples nearest at every example pose, thinned by projection_spacing): the node default's.
 PROJECTION = 8
-#: The kdsm rows' wider search: this many nearest body vertices at each example pose instead of one.
-PROJECTION_EXAMPLES_WIDE = 2
 
 
 def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, santesteban: bool = False,
@@ -109,9 +107,6 @@ def trade_rows(n_anchors: int, n_components: int, regressor: bool = False, sante
             Row("synthesis with the kdsm pose model", "kdsm", {"pose_model": "kdsm"}),
             Row(f"synthesis with the kdsm pose model, body projection ({PROJECTION} candidates)", "kdsm",
                 {"pose_model": "kdsm", "projection": PROJECTION}),
-            Row(f"synthesis with the kdsm pose model, body projection ({PROJECTION} candidates and the "
-                f"{PROJECTION_EXAMPLES_WIDE} nearest at each example pose)", "kdsm",
-                {"pose_model": "kdsm", "projection": PROJECTION, "projection_examples": PROJECTION_EXAMPLES_WIDE}),
         ]
     if shape_residual is not None:
         trained = ", ".join(f"{k}={v}" for k, v in sorted(shape_residual.items()) if k != "shape_residual")
