@@ -25,14 +25,14 @@ class EngineConfig:
         no shape correction, no penetration handling (the cheapest output; the evaluation's "pose model alone").
     penetration: Eq. 10 re-projection along the bound body vertex normal (eps_p = penetration_margin).
     projection: after Eq. 10, each garment vertex closer than penetration_margin to the nearest of its candidate
-        body vertices, skinned exactly, moves out along that vertex's normal; 0 = off. Its candidates: its
-        `projection` nearest body vertices at rest, and its `projection_examples` nearest at each pose-model
-        example pose (what a pose brings near: the arm at the torso's side), thinned to no two within
-        `projection_spacing` (metres) at rest, the first kept (0 = every distinct one): 8 per example pose 2.5 cm
-        apart leave less cloth inside than 1 per example pose for about the same number of checks. The normal is the
-        posed surface's, from the candidate's largest incident face. Eq. 10 keeps the anchors' own clearances, so cloth the anchors had
-        inside the body stays inside; this catches it (README "Speed vs accuracy": truly-inside vertices from 3-4 %
-        to 0.2-0.3 %, for ~0.1 ms per frame at 8).
+        body vertices, skinned exactly, moves out along the posed surface's normal there (that of the candidate's
+        largest incident face); 0 = off. Its candidates: its `projection` nearest body vertices at rest, and its
+        `projection_examples` nearest at each pose-model example pose (what a pose brings near: the arm at the
+        torso's side), thinned to no two within `projection_spacing` (metres) at rest, the first kept (0 = every
+        distinct one): 8 per example pose 2.5 cm apart leave less cloth inside than 1 per example pose for about the
+        same number of checks. Eq. 10 keeps the anchors' own clearances, so cloth the anchors had inside the body
+        stays inside; this catches it (README "Speed vs accuracy": truly-inside vertices from 3-4 % to 0.14-0.33 %,
+        for ~0.1 ms per frame at 8).
     decay: Eq. 9 damping of the region distances over frames, ratio `damping` (eta). The paper picks eta per garment
         from a residual curve it does not print; 0.5 is our default (a ~1.4-frame time constant at the frame rate).
     dtype: "float32" (default) or "float64" for the per-frame buffers; pose and weight arithmetic is always float64.
