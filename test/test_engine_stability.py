@@ -26,6 +26,12 @@ def engine(db, body):
 
 
 @pytest.fixture(scope="module")
+def projected(db, body):
+    """The node's refinement on top: the body projection (its posed face normals, its thinned candidates)."""
+    return Engine(db, body, EngineConfig(projection=8))
+
+
+@pytest.fixture(scope="module")
 def exact(db, body):
     return Engine(db, body, EngineConfig(penetration=False, decay=False))
 
@@ -119,7 +125,9 @@ def test_a_180_degree_jump_in_one_frame_stays_finite_and_bounded(db, body, engin
         assert np.linalg.norm(out - lbs(body, engine.reference, db, pose), axis=1).max() < bound
 
 
-def test_subnormal_huge_and_non_finite_inputs(db, engine):
+@pytest.mark.parametrize("which", ["engine", "projected"])
+def test_subnormal_huge_and_non_finite_inputs(db, request, which):
+    engine = request.getfixturevalue(which)
     n = len(db.bone_names)
     assert np.isfinite(engine.synthesize(np.full((n, 3), 5e-324))).all()
     assert np.isfinite(engine.synthesize(np.full((n, 3), 1e300))).all()
@@ -165,3 +173,17 @@ def test_exact_reproduction_at_anchor_pose_and_training_shape(db, body, exact, s
 
     expected = lbs(body, exact.reference, db, db.anchor_poses[s]) + f(beta) - f(db.beta0)
     assert np.abs(out - expected).max() < 2e-5
+
+
+@PROPERTY
+@given(pose=st.lists(st.floats(-7.0, 7.0), min_size=93, max_size=93),
+       beta=st.lists(st.floats(-0.5, 1.5), min_size=6, max_size=6))
+def test_the_body_projection_stays_finite_and_bounded(db, body, projected, pose, beta):
+    """Any pose, any shape: the projection moves a vertex at most out of the body, so the output stays finite, no
+    frame is rejected, and it lies within the same bound of the skinned garment plus the body's half-thickness."""
+    projected.set_shape(beta)
+    pose = np.reshape(pose, (-1, 3))
+    out = projected.synthesize(pose)
+    assert np.isfinite(out).all() and projected.bad_frames == 0
+    reference = lbs(body, projected.reference, db, pose)
+    assert np.linalg.norm(out - reference, axis=1).max() < deviation_bound(projected) + 0.3
