@@ -94,7 +94,7 @@ def skin_point(x, y, z, skin_indices, skin_weights, row, transforms):
 
 
 @numba.njit(cache=True, fastmath=True, inline="always")
-def _skin_vertex(rest, skin_indices, skin_weights, transforms, v):
+def skin_vertex(rest, skin_indices, skin_weights, transforms, v):
     """sum_k w_vk T_{i_vk} [rest_v; 1] as three scalars (zero-weight slots skipped)."""
     return skin_point(rest[v, 0], rest[v, 1], rest[v, 2], skin_indices, skin_weights, v, transforms)
 
@@ -106,7 +106,7 @@ def linear_blend_skinning(rest, skin_indices, skin_weights, transforms, out):
     Zero-weight slots are skipped; dtype follows `out` (float32 or float64).
     """
     for v in range(skin_indices.shape[0]):
-        out[v, 0], out[v, 1], out[v, 2] = _skin_vertex(rest, skin_indices, skin_weights, transforms, v)
+        out[v, 0], out[v, 1], out[v, 2] = skin_vertex(rest, skin_indices, skin_weights, transforms, v)
     return out
 
 
@@ -116,7 +116,7 @@ def linear_blend_skinning_into(rest, skin_indices, skin_weights, transforms, ord
     the output order in the same pass; order (V,) int)."""
     for v in range(skin_indices.shape[0]):
         o = order[v]
-        out[o, 0], out[o, 1], out[o, 2] = _skin_vertex(rest, skin_indices, skin_weights, transforms, v)
+        out[o, 0], out[o, 1], out[o, 2] = skin_vertex(rest, skin_indices, skin_weights, transforms, v)
     return out
 
 

@@ -25,7 +25,7 @@ import numpy as np
 from ..body import REFERENCE_SHAPE
 from ..engine.layering import bind_layers, bind_under, lift_over_inner, push_out_of_inner
 from ..engine.subdivision import LoopSubdivision
-from ..garment.binding import vertex_normals
+from ..garment.binding import face_normals, vertex_normals
 from ..garment.coverage import MAX_GAP, cover_depth, faces_with_vertices, sloped, tuck_depth
 from ..ros.garment_models import BodyModel
 
@@ -259,9 +259,8 @@ def always_covered(garments, body, poses, hidden=None, shapes=None) -> np.ndarra
             twin.reset()
         for rotvecs in poses:
             skin = np.asarray(plain.synthesize(rotvecs, root), dtype=np.float64)
-            corners = skin[plain.faces[candidates]]
-            centres = corners.mean(axis=1)
-            directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            centres = skin[plain.faces[candidates]].mean(axis=1)
+            directions = face_normals(skin, plain.faces[candidates])
             covered = np.zeros(len(candidates), dtype=bool)
             for twin, edge in zip(twins, edges):
                 cloth = np.asarray(twin.synthesize(rotvecs, root), dtype=np.float64)

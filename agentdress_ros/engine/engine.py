@@ -307,17 +307,15 @@ class Engine:
             columns.append(np.asarray(found).reshape(self.n_vertices, per_example))
         table = np.empty((self.n_vertices, sum(c.shape[1] for c in columns)), dtype=np.int64)
         table[self.order] = surface[np.concatenate(columns, axis=1)]  # output row order, nearest at rest first
-        keep = spaced_candidates(table, reference.vertices, float(self.config.projection_spacing),
-                                 np.zeros(table.shape, dtype=np.bool_))
-        table = np.where(keep, table, -1)
+        table[~spaced_candidates(table, reference.vertices, float(self.config.projection_spacing))] = -1
         table.sort(axis=1)  # ascending ids: neighbouring rows read neighbouring posed points
-        distinct = table >= 0
-        ids, local = np.unique(table[distinct], return_inverse=True)
+        kept = table >= 0
+        ids, local = np.unique(table[kept], return_inverse=True)
         corners = largest_face_corners(reference.vertices, self.body.body_faces)[ids]  # (U, 2) hm08 ids
         extra = np.setdiff1d(corners, ids)
         rows = np.concatenate([ids, extra])
         self.projection_vertices = rows  # (U',) hm08 ids: the U candidates, then the partners that are none
-        self._projection_offsets = np.concatenate([[0], np.cumsum(distinct.sum(axis=1))]).astype(np.int32)
+        self._projection_offsets = np.concatenate([[0], np.cumsum(kept.sum(axis=1))]).astype(np.int32)
         self._projection_candidates = np.ascontiguousarray(local, dtype=np.int32)
         row_of = np.full(len(reference.vertices), -1, dtype=np.int32)
         row_of[rows] = np.arange(len(rows))

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..body.kinematics import rotvec_to_matrix, skin_point
+from ..body.kinematics import rotvec_to_matrix, skin_vertex
 
 TWO_PI = 2.0 * np.pi
 
@@ -335,10 +335,11 @@ def _blended_transform(transforms, skin_indices, skin_weights, v):
 
 
 @numba.njit(cache=True, nogil=True)
-def spaced_candidates(table, points, spacing, keep):
-    """keep (V, C) bool: for each row of table (V, C) (ids into points (N, 3), in order of preference), the ids that
-    lie at least `spacing` from every id kept before them in the row (a repeated id is never kept twice)."""
+def spaced_candidates(table, points, spacing):
+    """(V, C) bool: for each row of table (V, C) (ids into points (N, 3), in order of preference), the ids that lie
+    at least `spacing` from every id kept before them in the row (a repeated id is never kept twice)."""
     limit = spacing * spacing
+    keep = np.zeros(table.shape, dtype=np.bool_)
     for v in range(table.shape[0]):
         for i in range(table.shape[1]):
             u = table[v, i]
@@ -353,13 +354,6 @@ def spaced_candidates(table, points, spacing, keep):
                         keep[v, i] = False
                         break
     return keep
-
-
-@numba.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _skin_row(points, skin_indices, skin_weights, transforms, u, posed):
-    """posed[u] = points[u] (U, 3) skinned with row u of skin_indices, skin_weights (U, I) and transforms (B, 3, 4)."""
-    posed[u, 0], posed[u, 1], posed[u, 2] = skin_point(points[u, 0], points[u, 1], points[u, 2], skin_indices,
-                                                       skin_weights, u, transforms)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -379,7 +373,7 @@ def project_out_of_body(out, offsets, candidates, partners, points, skin_indices
     must stay)."""
     n_candidates = posed.shape[0] - stamps.shape[0]
     for u in range(n_candidates):
-        _skin_row(points, skin_indices, skin_weights, transforms, u, posed)
+        posed[u, 0], posed[u, 1], posed[u, 2] = skin_vertex(points, skin_indices, skin_weights, transforms, u)
     bad = 0
     for v in range(out.shape[0]):
         x, y, z = out[v, 0], out[v, 1], out[v, 2]
@@ -394,7 +388,7 @@ def project_out_of_body(out, offsets, candidates, partners, points, skin_indices
         a, b = partners[nearest, 0], partners[nearest, 1]
         for w in (a, b):
             if w >= n_candidates and stamps[w - n_candidates] != frame:
-                _skin_row(points, skin_indices, skin_weights, transforms, w, posed)
+                posed[w, 0], posed[w, 1], posed[w, 2] = skin_vertex(points, skin_indices, skin_weights, transforms, w)
                 stamps[w - n_candidates] = frame
         px, py, pz = posed[nearest, 0], posed[nearest, 1], posed[nearest, 2]
         ax, ay, az = posed[a, 0] - px, posed[a, 1] - py, posed[a, 2] - pz

@@ -135,11 +135,11 @@ def _gaps(skin, hidden, out: dict, models: dict) -> tuple:
     """(how many of the body's faces left out - hidden (H, 3) over its vertices skin (N, 3) - have no garment over
     their centre along their normal, how many of them a viewer outside sees: seen_from_outside over everything
     drawn)."""
+    from ..garment.binding import face_normals
     from ..garment.coverage import cloth_over
 
-    corners = skin[hidden]
-    centres = corners.mean(axis=1)
-    directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    centres = skin[hidden].mean(axis=1)
+    directions = face_normals(skin, hidden)
     covered = np.zeros(len(hidden), dtype=bool)
     for name, model in models.items():
         if name != "body":

@@ -39,13 +39,18 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) the normals of the triangles faces (F, 3) over vertices (N, 3), twice their areas long (not unit)."""
+    corners = vertices[faces]
+    return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (N, 3) of a triangle mesh (vertices (N, 3), faces (F, 3))."""
-    corners = vertices[faces]
-    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    by_face = face_normals(vertices, faces)
     # bincount sums the face normals onto their corners ~5x faster than np.add.at
     ids = faces.reshape(-1)
-    normals = np.stack([np.bincount(ids, np.repeat(face_normals[:, a], 3), minlength=len(vertices))
+    normals = np.stack([np.bincount(ids, np.repeat(by_face[:, a], 3), minlength=len(vertices))
                         for a in range(3)], axis=1)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return normals / np.where(length > 0, length, 1.0)
@@ -53,10 +58,9 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def largest_face_corners(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(N, 2): for every vertex, the other two corners (next, previous in the winding) of its largest incident face
-    (the first of equal ones; vertices (N, 3), faces (F, 3)), so (p_next - p) x (p_previous - p) is that face's outward normal wherever the
-    mesh is posed. A vertex of no face names itself twice (a zero normal)."""
-    corners = vertices[faces]
-    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    (the first of equal ones; vertices (N, 3), faces (F, 3)), so (p_next - p) x (p_previous - p) is that face's
+    outward normal wherever the mesh is posed. A vertex of no face names itself twice (a zero normal)."""
+    area = np.linalg.norm(face_normals(vertices, faces), axis=1)
     owner = faces.reshape(-1)  # face f's corner c at 3 f + c
     following = faces[:, [1, 2, 0]].reshape(-1)
     preceding = faces[:, [2, 0, 1]].reshape(-1)

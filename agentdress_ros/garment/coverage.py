@@ -19,7 +19,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from .binding import mesh_edges, vertex_normals
+from .binding import face_normals, mesh_edges, vertex_normals
 
 #: Defaults: a band of 1.5 cm of body kept under every garment edge; cloth up to 6 cm off the skin still covers it.
 MARGIN = 0.015
@@ -61,12 +61,6 @@ def _edge_lengths(vertices: np.ndarray, faces: np.ndarray) -> tuple:
     """(edges (E, 2), their lengths (E,)) of a triangle mesh (V, 3), (F, 3): the graph of its geodesic fields."""
     edges = mesh_edges(faces)
     return edges, np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
-
-
-def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F, 3) the triangles' normals, not unit (every test here reads only their signs against other vectors)."""
-    corners = vertices[faces]
-    return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -316,7 +310,7 @@ def surface_side(points, vertices, faces, max_gap: float = MAX_GAP, edge_band: f
     edges = boundary_distance(vertices, faces) if edges is None else edges
     out = np.zeros(len(points), dtype=np.int8)
     ids, closest, distance, face_ids, edge_distance = _closest(points, vertices, faces, max_gap, edges)
-    normals = _face_normals(vertices, faces)
+    normals = face_normals(vertices, faces)  # not unit: only their signs against other vectors are read
     if directions is not None and len(ids):
         own = np.asarray(directions, dtype=np.float64)[ids]
         facing = np.flatnonzero((normals[face_ids] * own).sum(axis=1) <= 0)
@@ -349,7 +343,7 @@ def cloth_over(points, directions, vertices, faces, max_gap: float = MAX_GAP, ed
     unit = np.asarray(directions, dtype=np.float64)
     unit = np.ascontiguousarray(unit / np.maximum(np.linalg.norm(unit, axis=1, keepdims=True), 1e-20))
     edges = boundary_distance(vertices, faces) if edges is None else np.asarray(edges, dtype=np.float64)
-    normals = _face_normals(vertices, faces)
+    normals = face_normals(vertices, faces)
     offsets, candidates = _triangles_near(points, vertices, faces, max(max_gap, below))
     out = np.zeros(len(points), dtype=np.bool_)
     _rays_hit(points, unit, vertices, faces, normals, offsets, candidates, -below, max_gap, edges, edge_band, out)
@@ -371,9 +365,8 @@ def poke_through(body_vertices, body_faces, garment_vertices, garment_faces, max
     point than the face is settles it: a panel floating in the armpit, 5 cm from both arm and torso, is the torso's
     when the torso is nearer, by however little."""
     body_vertices = np.asarray(body_vertices, dtype=np.float64)
-    corners = body_vertices[body_faces]
-    centres = corners.mean(axis=1)
-    directions = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    centres = body_vertices[body_faces].mean(axis=1)
+    directions = face_normals(body_vertices, body_faces)
     sides, closest = surface_side(centres, garment_vertices, garment_faces, max_gap, edge_band, directions,
                                   return_closest=True)
     poking = sides > 0
