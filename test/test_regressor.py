@@ -180,6 +180,42 @@ def test_fold_makes_synthesis_exact_at_an_anchor(body, database, trained):
     np.testing.assert_allclose(folded.synthesize(pose), other.synthesize(pose), atol=1e-4)
 
 
+def test_a_fork_takes_another_pose_model_only_without_the_fold(body, database, trained):
+    """A level of detail may run a cheaper pose model: a fork of a regressor engine without the fold, set to
+    `examples`, is the examples engine at any shape; with the fold the fork is refused (the shape state holds the
+    regressor's residuals), and the scene then keeps the agent's pose model at every tier."""
+    from agentdress_ros.scene import AgentSpec, GarmentSpec, Scene, SceneConfig
+
+    db = replace(database, regressor=trained[0])
+    config = dict(dtype="float64", penetration=False, decay=False)
+    parent = Engine(db, body, EngineConfig(pose_model="regressor", fold=False, **config))
+    examples = Engine(db, body, EngineConfig(pose_model="examples", **config))
+    beta = np.asarray(db.beta0) + np.array([0.2, 0, 0.1, -0.1, 0, 0])
+    parent.set_shape(beta)
+    examples.set_shape(beta)
+    fork = parent.fork(pose_model="examples")
+    second = parent.fork(pose_model="examples")
+    assert second.pose_model.canonical is fork.pose_model.canonical  # loaded once, shared
+    pose = db.anchor_poses[5] * 0.7
+    np.testing.assert_allclose(fork.synthesize(pose), examples.synthesize(pose), atol=1e-9)
+    assert np.abs(parent.synthesize(pose) - examples.synthesize(pose)).max() > 1e-3
+    folded = Engine(db, body, EngineConfig(pose_model="regressor", **config))
+    with pytest.raises(ValueError, match="fold"):
+        folded.fork(pose_model="examples")
+
+    scene = Scene(body, SceneConfig(lod_enabled=False, budget_ms=0.0))
+    try:
+        spec = GarmentSpec("tshirt", database=str(DATABASE), engine=(("fold", True), ("pose_model", "regressor")))
+        agent = scene.build_agent(AgentSpec("folds", (spec,), tuple(db.beta0)))
+        levels = agent.garments["tshirt"]._levels
+        assert levels[1][0] == "synthesis" and levels[1][1].pose_model.name == "regressor"
+        spec = GarmentSpec("tshirt", database=str(DATABASE), engine=(("fold", False), ("pose_model", "regressor")))
+        agent = scene.build_agent(AgentSpec("unfolded", (spec,), tuple(db.beta0)))
+        assert agent.garments["tshirt"]._levels[1][1].pose_model.name == "examples"
+    finally:
+        scene.stop()
+
+
 def test_database_round_trip_select_and_permute(body, tmp_path, database, trained):
     regressor = trained[0]
     path = write_database(tmp_path / "db.h5", replace(database, recurrent=None, regressor=regressor))

@@ -26,7 +26,7 @@ LOOK_X = (0.0, 0.0, 0.0, 1.0)  # identity orientation: looking along +x
 def test_tier_lines_parse_and_print_back():
     tiers = DEFAULT_TIERS
     assert [t.name for t in tiers] == ["near", "mid", "far", "distant"]
-    assert tiers[1].engine == (("neighbors", 2), ("penetration", False), ("projection", 0))
+    assert tiers[1].engine == (("neighbors", 2), ("penetration", False), ("pose_model", "examples"), ("projection", 0))
     assert tiers[1].kind == "synthesis"
     assert tiers[2].kind == "skinned" and math.isinf(tiers[3].max_distance) and tiers[3].every == 6
     assert parse_tiers([t.text() for t in tiers]) == tiers
@@ -40,6 +40,8 @@ def test_tier_lines_parse_and_print_back():
     (["a inf synthesis colour=red"], "unknown key"),
     (["a inf synthesis neighbors=0"], ">= 1"),
     (["a inf synthesis projection=-1"], ">= 0"),
+    (["a inf synthesis pose_model=magic"], "one of"),
+    (["a inf skinned pose_model=examples"], "synthesis tiers only"),
     (["a inf fancy"], "kind"),
     (["a -1 synthesis"], "> 0"),
     (["a"], "needs"),

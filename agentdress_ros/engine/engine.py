@@ -268,6 +268,7 @@ class Engine:
             power=float(config.power), decay=bool(config.decay), damping=float(config.damping),
             block_start=self.block_start, block_regions=self.block_regions, region_w=self.region_w)
         self.pose_model = make_pose_model(config.pose_model, context)
+        self._pose_models = {config.pose_model: self.pose_model}  # shared by every fork: one of each loaded
         self._fold = self._anchor_residuals() if config.fold and self.mode == 0 else None
         self._shape_residual = None
         if config.shape_residual:
@@ -465,7 +466,7 @@ class Engine:
 
     # ---------------------------------------------------------------- many agents on one loaded database
     #: EngineConfig fields a fork may change: they act per frame and leave the shape state's meaning unchanged.
-    FORK_FIELDS = ("neighbors", "penetration", "projection", "decay", "damping", "power")
+    FORK_FIELDS = ("neighbors", "penetration", "projection", "decay", "damping", "power", "pose_model")
 
     def fork(self, **changes) -> "Engine":
         """A new engine for another agent (or another level of detail of this one) on the same loaded data.
@@ -473,7 +474,10 @@ class Engine:
         Shared, read-only: the database, anchor features, pose-model examples, skin weights, anchor transforms at
         beta0. Own: frame buffers, decay history, the shape state (it starts as this engine's; `set_shape` or
         `follow_shape` replace it). `changes` may set the per-frame knobs in FORK_FIELDS; turning penetration on
-        needs a parent that computes the clearances (penetration on). Costs ~100 kB at 1,200 vertices.
+        needs a parent that computes the clearances (penetration on). Another pose model (a cheaper one for a far
+        level of detail) needs a parent without the anchor fold, and is itself used without it: the shape state
+        is then the same for every pose model. It is loaded once per parent and shared by its forks (the body
+        projection keeps the parent's candidates). Costs ~100 kB at 1,200 vertices.
         """
         bad = sorted(set(changes) - set(self.FORK_FIELDS))
         if bad:
@@ -492,13 +496,35 @@ class Engine:
         context = replace(self.pose_model_context, power=float(config.power), decay=bool(config.decay),
                           damping=float(config.damping))
         twin.pose_model_context = context
-        fork_pose_model = getattr(self.pose_model, "fork", None)
-        twin.pose_model = fork_pose_model(context) if callable(fork_pose_model) else self.pose_model
+        model = self.pose_model
+        if config.pose_model != self.config.pose_model:
+            model = self._other_pose_model(config.pose_model)
+        fork_pose_model = getattr(model, "fork", None)
+        twin.pose_model = fork_pose_model(context) if callable(fork_pose_model) else model
         if self._shape_residual is not None:
             twin._shape_residual = self._shape_residual.fork()
         twin._allocate_frame_buffers()
         twin._buffers[0][...] = self._buffers[self._current]
         return twin
+
+    @property
+    def pose_model_forkable(self) -> bool:
+        """Whether a fork may take another pose model (this engine has no anchor fold)."""
+        return self._fold is None
+
+    def _other_pose_model(self, name: str):
+        """The pose model `name` for a fork, loaded once and shared with every fork of this engine's data."""
+        if self._fold is not None:
+            raise ValueError(f"a fork can change the pose model only where the parent has no anchor fold "
+                             f"(fold=false, or a pose model without one); {self.config.pose_model} folds")
+        model = self._pose_models.get(name)
+        if model is None:
+            model = make_pose_model(name, self.pose_model_context)
+            if getattr(model, "fold_anchor_residuals", False) and self.config.fold:
+                raise ValueError(f"pose model {name!r} folds its anchor residuals: a fork to it needs fold=false "
+                                 "on the parent")
+            self._pose_models[name] = model
+        return model
 
     def follow_shape(self, source: "Engine") -> None:
         """Take `source`'s shape state (an engine forked from the same parent): one set_shape serves every level

@@ -1,11 +1,12 @@
 """`agentdress bench crowd --agents 1 10 25 50 100 --seconds S`: one node dressing N agents over real DDS.
 
 For each N the node runs as a child process in crowd mode (`agents: [agent_000, ...]`, T-shirt and trousers from the
-shipped databases, examples pose model), pinned to one core (`--node-cores`; its DDS threads share that core) while
-the pose publisher and this process run on the others; a second child process (`agentdress demo --agents N`)
-publishes every agent's JointState at `--pose-rate` and, in the spread run, a fixed viewer pose; this process
-listens to ~/status and to the T-shirt cloud of the agent nearest the viewer in view (the one each status names:
-the agents walk). Two runs per N:
+shipped databases, the engine knobs of `--engine`: by default the node's own, the regressor pose model with the body
+projection at the near tier, the shipped tiers; `--engine pose_model=examples` is the configuration of the README's
+earlier rows), pinned to one core (`--node-cores`; its DDS threads share that core) while the pose publisher and this
+process run on the others; a second child process (`agentdress demo --agents N`) publishes every agent's JointState
+at `--pose-rate` and, in the spread run, a fixed viewer pose; this process listens to ~/status and to the T-shirt
+cloud of the agent nearest the viewer in view (the one each status names: the agents walk). Two runs per N:
   near    every agent within 3 m, LOD off (lod.enabled false): every agent fully dressed on every new pose
   spread  agents walking about a 30 m plaza, a viewer at its edge looking in, LOD, culling and the 8 ms budget on
   cpu     no DDS: the scene in this process, every agent given a new pose every tick and dressed at one level, its
@@ -40,6 +41,13 @@ DATABASES = {"tshirt": ROOT / "data" / "tshirt_default.h5", "trousers": ROOT / "
 VIEWER = (-16.0, 0.0, 1.6, 0.0)  # x, y, z, yaw: at the plaza's edge, looking along +x into it
 
 
+def default_engine() -> list:
+    """The node's shipped engine knobs (its `engine` parameter's default)."""
+    from ..ros.params import PARAMETERS
+
+    return list(PARAMETERS["engine"].default)
+
+
 def _nearest_in_view(detail: dict):
     """The name of the agent nearest the viewer in view in a status's agents_detail (None when none is)."""
     seen = [n for n in detail if detail[n]["visible"]]
@@ -48,7 +56,7 @@ def _nearest_in_view(detail: dict):
 
 def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: float, budget_ms: float,
              warmup: float, log_dir: Path, node_nice: int = 0, node_cores: tuple = (),
-             realtime_priority: int = 0) -> dict:
+             realtime_priority: int = 0, engine: tuple = ()) -> dict:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState, PointCloud2
     from std_msgs.msg import String
@@ -63,7 +71,7 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
     params = {"agents": names, "garments": list(DATABASES),
               "garment_databases": [f"{g}:{p}" for g, p in DATABASES.items()],
               "rate_hz": float(rate_hz), "status_rate_hz": 1.0, "budget_ms": float(budget_ms),
-              "lod.enabled": mode == "spread", "engine": ["pose_model=examples"]}  # the configuration measured
+              "lod.enabled": mode == "spread", "engine": list(engine or default_engine())}
     if realtime_priority:
         params["realtime_priority"] = int(realtime_priority)
     prefix = ["nice", "-n", str(node_nice)] if node_nice else []
@@ -177,16 +185,18 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
             print(f"bench: node exited with {rc}:\n{node.output()}", file=sys.stderr)
 
 
-def _run_cpu(count: int, ticks: int = 60) -> dict:
+def _run_cpu(count: int, ticks: int = 60, engine: tuple = ()) -> dict:
     """CPU ms per agent frame at each tier's level, and per tick, for `count` agents (in process, no DDS)."""
     from ..body import AnnyBody
     from ..ros.crowd_demo import CrowdPlayer
     from ..ros.messages import SerializedCloud
+    from ..ros.params import engine_for, parse_engine
     from ..scene import AgentSpec, GarmentSpec, Scene, SceneConfig
 
     body = AnnyBody()
     scene = Scene(body, SceneConfig(lod_enabled=False, budget_ms=0.0, fade_frames=0))
-    garments = tuple(GarmentSpec(g, database=str(p), engine=(("pose_model", "examples"),)) for g, p in DATABASES.items())
+    knobs = parse_engine(list(engine or default_engine()))
+    garments = tuple(GarmentSpec(g, database=str(p), engine=engine_for(knobs, g)) for g, p in DATABASES.items())
     player = CrowdPlayer(count, 30.0)
     try:
         for i, track in enumerate(player.tracks):
@@ -224,13 +234,14 @@ def _run_cpu(count: int, ticks: int = 60) -> dict:
         scene.stop()
     from ..scene.scene import percentiles
 
-    return {"agents": count, "mode": "cpu", "cpu_ms_per_agent_frame": per_level,
+    return {"agents": count, "mode": "cpu", "engine": list(engine or default_engine()),
+            "cpu_ms_per_agent_frame": per_level,
             "cpu_ms_per_tick_all_near": percentiles(tick, digits=3)}
 
 
 def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near", "spread"),
                 pose_rate: float = 30.0, rate_hz: float = 90.0, budget_ms: float = 8.0, warmup: float = 5.0,
-                node_nice: int = 0, node_cores=None, realtime_priority: int = 0):
+                node_nice: int = 0, node_cores=None, realtime_priority: int = 0, engine=()):
     """Yields one result dict per (mode, N), RSS added per agent against the smallest N of the same mode."""
     log_dir = Path(tempfile.mkdtemp(prefix="agentdress_bench_crowd_"))
     if node_cores is None:  # the goals are for one core: the node on the first, the rest of the machine beside it
@@ -239,17 +250,19 @@ def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near
     for mode in modes:
         if mode == "cpu":
             for count in sorted(counts):
-                yield _run_cpu(int(count))
+                yield _run_cpu(int(count), engine=tuple(engine))
             continue
         base = None
         for count in sorted(counts):
             result = _run_one(int(count), mode, float(seconds), float(pose_rate), float(rate_hz), float(budget_ms),
-                              float(warmup), log_dir, int(node_nice), tuple(node_cores), int(realtime_priority))
+                              float(warmup), log_dir, int(node_nice), tuple(node_cores), int(realtime_priority),
+                              tuple(engine))
             if base is None:
                 base = result
             elif count > base["agents"]:
                 result["rss_added_per_agent_mb"] = round((result["rss_mb"] - base["rss_mb"])
                                                          / (count - base["agents"]), 3)
+            result["engine"] = list(engine or default_engine())
             result["load_avg_1min"] = round(os.getloadavg()[0], 2)
             result["logs"] = str(log_dir)
             yield result
@@ -272,10 +285,13 @@ def main(argv=None) -> int:
                         help="the node's realtime_priority parameter (SCHED_FIFO for its executor thread; 0: off)")
     parser.add_argument("--node-nice", type=int, default=0,
                         help="run the node under `nice -n N` (negative: ahead of other work on a shared machine)")
+    parser.add_argument("--engine", nargs="+", default=None,
+                        help="the node's engine knobs for every agent ('field=value', 'garment:field=value'; default: "
+                             "the node's own, the regressor pose model with the body projection)")
     args = parser.parse_args(argv)
     for result in bench_crowd(args.agents, args.seconds, args.modes, args.pose_rate, args.rate, args.budget_ms,
                               node_nice=args.node_nice, node_cores=args.node_cores,
-                              realtime_priority=args.realtime_priority):
+                              realtime_priority=args.realtime_priority, engine=tuple(args.engine or ())):
         print(json.dumps(result), flush=True)
     return 0
 

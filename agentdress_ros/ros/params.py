@@ -105,7 +105,8 @@ PARAMETERS: dict[str, Spec] = {
                                  "an rtprio limit, else a warning; 0 = the normal scheduler", runtime=False),
     "lod.enabled": Spec(True, "levels of detail and culling by the viewer's pose (false: every agent fully dressed)"),
     "lod.tiers": Spec(list(DEFAULT_TIER_TEXT), "tiers by distance, '<name> <max m|inf> <synthesis|skinned> "
-                                               "[neighbors=n] [penetration=false] [every=n] ...'", runtime=False),
+                                               "[neighbors=n] [penetration=false] [pose_model=examples] [every=n] "
+                                               "...'", runtime=False),
     "lod.hysteresis": Spec(0.5, "metres an agent must pass a tier boundary by before it changes tier"),
     "lod.fade_frames": Spec(6, "frames over which a tier change cross-fades (0: switch at once)", runtime=False),
     "lod.fov_deg": Spec(110.0, "the viewer's field of view, degrees (agents outside it, plus the margin, are culled)"),

@@ -1,18 +1,19 @@
 """Levels of detail by distance to the viewer, with hysteresis, and field-of-view culling (pure functions and small
-state: no ROS, no engine).
+state: no ROS; the engine only to check a tier's pose model name).
 
 A tier is one line of text, so a list of them is a plain ROS string-array parameter:
 
     "near 3 synthesis"                                   full synthesis under 3 m
-    "mid 8 synthesis neighbors=2 penetration=false projection=0"
+    "mid 8 synthesis neighbors=2 penetration=false projection=0 pose_model=examples"
                                                          fewer anchors blended, no penetration handling or body
-                                                         projection, under 8 m
+                                                         projection, the cheaper pose model, under 8 m
     "far 20 skinned"                                     the garment fitted to the body and skinned, under 20 m
     "distant inf skinned every=6"                        beyond: dressed every sixth tick (15 Hz at 90 Hz)
 
 `<name> <max distance in m | inf> <synthesis | skinned> [key=value ...]`: keys are the engine's per-frame knobs
-(`Engine.FORK_FIELDS`: neighbors, penetration, projection (0 only: off), decay, damping, power) for synthesis
-tiers, and `every=n` for any tier. Tiers are ordered by distance; the last one must reach `inf`.
+(`Engine.FORK_FIELDS`: neighbors, penetration, projection (0 only: off), decay, damping, power, pose_model (where
+the agent's engine has no anchor fold; kept otherwise)) for synthesis tiers, and `every=n` for any tier. Tiers are
+ordered by distance; the last one must reach `inf`.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ __all__ = ["DEFAULT_TIERS", "LodPolicy", "Tier", "Viewer", "parse_tier", "parse_
 
 #: Engine knobs a tier may set, with their coercion (Engine.FORK_FIELDS).
 TIER_ENGINE_FIELDS = {"neighbors": int, "penetration": bool, "projection": int, "decay": bool, "damping": float,
-                      "power": float}
+                      "power": float, "pose_model": str}
 #: The least value of each integer knob (projection=0 turns the body projection off).
 TIER_INT_LEAST = {"neighbors": 1, "projection": 0}
 TIER_KINDS = ("synthesis", "skinned")
@@ -46,12 +47,19 @@ class Tier:
                          self.kind] + extra)
 
 
-DEFAULT_TIER_TEXT = ("near 3 synthesis", "mid 8 synthesis neighbors=2 penetration=false projection=0",
+DEFAULT_TIER_TEXT = ("near 3 synthesis",
+                     "mid 8 synthesis neighbors=2 penetration=false projection=0 pose_model=examples",
                      "far 20 skinned", "distant inf skinned every=6")
 
 
 def _value(key: str, text: str):
     kind = TIER_ENGINE_FIELDS[key]
+    if kind is str:
+        from ..engine.pose_models import POSE_MODELS  # the only text knob
+
+        if text not in POSE_MODELS:
+            raise ValueError(f"{key} must be one of {', '.join(sorted(POSE_MODELS))}, got {text!r}")
+        return text
     if kind is bool:
         if text.lower() not in ("true", "false"):
             raise ValueError(f"{key} must be true or false, got {text!r}")
