@@ -498,7 +498,10 @@ class Engine:
         twin.pose_model_context = context
         model = self.pose_model
         if config.pose_model != self.config.pose_model:
-            model = self._other_pose_model(config.pose_model)
+            if not self.can_fork_pose_model(config.pose_model):
+                raise ValueError(f"a fork can change the pose model only where neither it nor the parent folds anchor "
+                                 f"residuals (fold=false); {self.config.pose_model} -> {config.pose_model} would")
+            model = self._loaded_pose_model(config.pose_model)
         fork_pose_model = getattr(model, "fork", None)
         twin.pose_model = fork_pose_model(context) if callable(fork_pose_model) else model
         if self._shape_residual is not None:
@@ -507,24 +510,19 @@ class Engine:
         twin._buffers[0][...] = self._buffers[self._current]
         return twin
 
-    @property
-    def pose_model_forkable(self) -> bool:
-        """Whether a fork may take another pose model (this engine has no anchor fold)."""
-        return self._fold is None
+    def can_fork_pose_model(self, name: str) -> bool:
+        """Whether a fork may run pose model `name`: neither this engine nor the fork folds anchor residuals into
+        the shape state (which is then the same for every pose model)."""
+        if name == self.config.pose_model:
+            return True
+        return self._fold is None and not (self.config.fold and getattr(self._loaded_pose_model(name),
+                                                                         "fold_anchor_residuals", False))
 
-    def _other_pose_model(self, name: str):
-        """The pose model `name` for a fork, loaded once and shared with every fork of this engine's data."""
-        if self._fold is not None:
-            raise ValueError(f"a fork can change the pose model only where the parent has no anchor fold "
-                             f"(fold=false, or a pose model without one); {self.config.pose_model} folds")
-        model = self._pose_models.get(name)
-        if model is None:
-            model = make_pose_model(name, self.pose_model_context)
-            if getattr(model, "fold_anchor_residuals", False) and self.config.fold:
-                raise ValueError(f"pose model {name!r} folds its anchor residuals: a fork to it needs fold=false "
-                                 "on the parent")
-            self._pose_models[name] = model
-        return model
+    def _loaded_pose_model(self, name: str):
+        """The pose model `name` on this engine's data, loaded once and shared with every fork."""
+        if name not in self._pose_models:
+            self._pose_models[name] = make_pose_model(name, self.pose_model_context)
+        return self._pose_models[name]
 
     def follow_shape(self, source: "Engine") -> None:
         """Take `source`'s shape state (an engine forked from the same parent): one set_shape serves every level

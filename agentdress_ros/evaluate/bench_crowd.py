@@ -56,7 +56,7 @@ def _nearest_in_view(detail: dict):
 
 def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: float, budget_ms: float,
              warmup: float, log_dir: Path, node_nice: int = 0, node_cores: tuple = (),
-             realtime_priority: int = 0, engine: tuple = ()) -> dict:
+             realtime_priority: int = 0, engine: tuple = tuple(default_engine())) -> dict:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState, PointCloud2
     from std_msgs.msg import String
@@ -71,7 +71,7 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
     params = {"agents": names, "garments": list(DATABASES),
               "garment_databases": [f"{g}:{p}" for g, p in DATABASES.items()],
               "rate_hz": float(rate_hz), "status_rate_hz": 1.0, "budget_ms": float(budget_ms),
-              "lod.enabled": mode == "spread", "engine": list(engine or default_engine())}
+              "lod.enabled": mode == "spread", "engine": list(engine)}
     if realtime_priority:
         params["realtime_priority"] = int(realtime_priority)
     prefix = ["nice", "-n", str(node_nice)] if node_nice else []
@@ -185,7 +185,7 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
             print(f"bench: node exited with {rc}:\n{node.output()}", file=sys.stderr)
 
 
-def _run_cpu(count: int, ticks: int = 60, engine: tuple = ()) -> dict:
+def _run_cpu(count: int, ticks: int = 60, engine: tuple = tuple(default_engine())) -> dict:
     """CPU ms per agent frame at each tier's level, and per tick, for `count` agents (in process, no DDS)."""
     from ..body import AnnyBody
     from ..ros.crowd_demo import CrowdPlayer
@@ -195,7 +195,7 @@ def _run_cpu(count: int, ticks: int = 60, engine: tuple = ()) -> dict:
 
     body = AnnyBody()
     scene = Scene(body, SceneConfig(lod_enabled=False, budget_ms=0.0, fade_frames=0))
-    knobs = parse_engine(list(engine or default_engine()))
+    knobs = parse_engine(list(engine))
     garments = tuple(GarmentSpec(g, database=str(p), engine=engine_for(knobs, g)) for g, p in DATABASES.items())
     player = CrowdPlayer(count, 30.0)
     try:
@@ -234,15 +234,16 @@ def _run_cpu(count: int, ticks: int = 60, engine: tuple = ()) -> dict:
         scene.stop()
     from ..scene.scene import percentiles
 
-    return {"agents": count, "mode": "cpu", "engine": list(engine or default_engine()),
-            "cpu_ms_per_agent_frame": per_level,
+    return {"agents": count, "mode": "cpu", "engine": list(engine), "cpu_ms_per_agent_frame": per_level,
             "cpu_ms_per_tick_all_near": percentiles(tick, digits=3)}
 
 
 def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near", "spread"),
                 pose_rate: float = 30.0, rate_hz: float = 90.0, budget_ms: float = 8.0, warmup: float = 5.0,
                 node_nice: int = 0, node_cores=None, realtime_priority: int = 0, engine=()):
-    """Yields one result dict per (mode, N), RSS added per agent against the smallest N of the same mode."""
+    """Yields one result dict per (mode, N), RSS added per agent against the smallest N of the same mode. engine:
+    the agents' engine knobs (empty: the node's default)."""
+    engine = tuple(engine) or tuple(default_engine())
     log_dir = Path(tempfile.mkdtemp(prefix="agentdress_bench_crowd_"))
     if node_cores is None:  # the goals are for one core: the node on the first, the rest of the machine beside it
         cores = sorted(os.sched_getaffinity(0))
@@ -250,19 +251,19 @@ def bench_crowd(counts=(1, 10, 25, 50, 100), seconds: float = 20.0, modes=("near
     for mode in modes:
         if mode == "cpu":
             for count in sorted(counts):
-                yield _run_cpu(int(count), engine=tuple(engine))
+                yield _run_cpu(int(count), engine=engine)
             continue
         base = None
         for count in sorted(counts):
             result = _run_one(int(count), mode, float(seconds), float(pose_rate), float(rate_hz), float(budget_ms),
                               float(warmup), log_dir, int(node_nice), tuple(node_cores), int(realtime_priority),
-                              tuple(engine))
+                              engine)
             if base is None:
                 base = result
             elif count > base["agents"]:
                 result["rss_added_per_agent_mb"] = round((result["rss_mb"] - base["rss_mb"])
                                                          / (count - base["agents"]), 3)
-            result["engine"] = list(engine or default_engine())
+            result["engine"] = list(engine)
             result["load_avg_1min"] = round(os.getloadavg()[0], 2)
             result["logs"] = str(log_dir)
             yield result

@@ -112,8 +112,8 @@ class AgentGarment:
                     self._levels.append(("skinned", self.base))
                 else:
                     key = tuple(tier.engine)
-                    if not self.base.pose_model_forkable:  # the agent's pose model folds: keep it at every tier
-                        key = tuple((k, v) for k, v in key if k != "pose_model")
+                    if not self.base.can_fork_pose_model(dict(key).get("pose_model", self.base.config.pose_model)):
+                        key = tuple((k, v) for k, v in key if k != "pose_model")  # a fold: the agent's model stays
                     if key not in forks:
                         forks[key] = self.base.fork(**dict(key)) if key else self.base
                     self._levels.append(("synthesis", forks[key]))
