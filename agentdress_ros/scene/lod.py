@@ -12,8 +12,8 @@ A tier is one line of text, so a list of them is a plain ROS string-array parame
 
 `<name> <max distance in m | inf> <synthesis | skinned> [key=value ...]`: keys are the engine's per-frame knobs
 (`Engine.FORK_FIELDS`: neighbors, penetration, projection (0 only: off), decay, damping, power, pose_model (where
-the agent's engine has no anchor fold; kept otherwise)) for synthesis tiers, and `every=n` for any tier. Tiers are
-ordered by distance; the last one must reach `inf`.
+neither the agent's nor the tier's folds anchor residuals; kept otherwise)) for synthesis tiers, and `every=n` for
+any tier. Tiers are ordered by distance; the last one must reach `inf`.
 """
 from __future__ import annotations
 
