@@ -15,7 +15,8 @@ cloud of the agent nearest the viewer in view (the one each status names: the ag
 Reported per N (JSON): tick_ms p50/p99 (the node's crowd timer tick: decide, dress, publish; near agents answered
 on arrival are dressed in their subscription callback, outside it), late ticks (timer
 ticks more than 1.5 periods after the previous one), clouds per second per agent (frames dressed / seconds / N,
-from the node's counts), agents per tier (culled among them), frames degraded by the budget, node CPU (100 = one
+from the node's counts), agents per tier (culled among them), frames degraded by the budget, the margin the
+budget keeps free of recent misses (margin_ms), node CPU (100 = one
 core) and RSS, RSS added per agent (against the smallest N of the same run), the nearest agent's JointState ->
 PointCloud2 latency p99 (stamp to arrival here) and, beside it, the same agent's JointState stamp -> arrival here
 (nearest_pose_transport_ms: what the transport alone takes, on the publisher's loaded core). Measuring starts once
@@ -169,7 +170,7 @@ def _run_one(count: int, mode: str, seconds: float, pose_rate: float, rate_hz: f
             "tick_ms": status["tick_ms"], "late_ticks": status["late_ticks"] - status0["late_ticks"],
             "tick_rate_hz": status["tick_rate_hz"],
             "clouds_per_s_per_agent": round((frames - frames0) / wall / count, 2),
-            "tiers": tiers,
+            "tiers": tiers, "margin_ms": crowd.get("margin_ms"),
             "cpu_percent": round(100.0 * cpu / wall, 1), "rss_mb": round(rss, 1),
             "nearest_agent": nearest, "nearest_agents": follow["agents"],
             "nearest_latency_ms": percentiles(state["latency"], digits=3),
