@@ -796,9 +796,11 @@ def main(argv=None) -> int:
     parser.add_argument("--drape", default="", help="JSON DrapeSettings overrides for the ground truth")
     parser.add_argument("--ground-truth", default=None, help="pack of the held-out drapes, read when present and "
                         "rewritten (default: <out>/ground_truth_drapes.npz; 'none' for no pack)")
-    parser.add_argument("--test-set", choices=["v1", "v2"], default="v1", help="v1: 10 poses of 5 test clips x 3 "
-                        "shapes, static collider; v2: 40 poses of all 10 test clips x 3 shapes, animated collider, "
-                        "and dynamic sequences along 02_08 and 05_12 (see evaluate.testset.held_out_v2)")
+    parser.add_argument("--test-set", choices=["v1", "v2", "v3"], default="v1", help="v1: 10 poses of 5 test clips "
+                        "x 3 shapes, static collider; v2: 40 poses of all 10 test clips x 3 shapes, animated collider, "
+                        "and dynamic sequences along 02_08 and 05_12 (see evaluate.testset.held_out_v2); v3: the v2 "
+                        "poses, each at one of its shapes, draped along 3 ramps and scored against physics' own spread "
+                        "(evaluate.score_v3; its drapes come from `agentdress lab groundtruth-v3`)")
     parser.add_argument("--test-config", default="", help="JSON object of test-set fields to override (evaluate."
                         "testset.HeldOutConfig), e.g. '{\"poses_per_clip\": 1, \"shapes_inside\": 1, \"dynamic_clips\": []}'")
     parser.add_argument("--beta0", action="store_true", help="drape the held-out poses at beta0 too when their pack "
@@ -807,6 +809,12 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     pack = None if args.ground_truth == "none" else (args.ground_truth or Path(args.out) / "ground_truth_drapes.npz")
+    if args.test_set == "v3":
+        from .score_v3 import evaluate_v3, markdown
+
+        report = evaluate_v3(args.database, pack, args.out, progress=not args.quiet)
+        print(markdown(report))
+        return 0
     cache = args.cache or default_cache(args.database, args.test_set)
     beta0_pack = None if pack is None else Path(pack).with_name("ground_truth_beta0.npz")
     report = evaluate(args.database, args.out, cache, clips=args.clips, quick=args.quick,

@@ -150,14 +150,20 @@ def summary(pack: dict, cases: list) -> dict:
             "environment": pack["environment"]}
 
 
-def v3_drapes(pack) -> tuple[np.ndarray, list, dict]:
-    """(drapes (C, R, V, 3) of the kept cases, their case indices, summary) from a v3 pack."""
-    from ..build.jobs import read_drape_pack
+def v3_drapes(pack, expected_key: str | None = None) -> tuple[np.ndarray, list, dict]:
+    """(drapes (C, R, V, 3) of the kept cases, their case indices, summary) from a v3 pack; with expected_key (the
+    plan key of `v3_plan`), a pack of another garment, vertex count or case list is refused, naming what differs."""
+    from ..build.jobs import key_changes, read_drape_pack
 
     data = read_drape_pack(pack)
+    if expected_key is not None and data["plan_key"] != expected_key:
+        changes = key_changes(json.loads(data["plan_key"]), json.loads(expected_key))
+        raise ValueError(f"{pack}: these v3 drapes belong to another plan (pack -> wanted): {'; '.join(changes)}")
     plan = json.loads(data["plan_key"])
     cases = [V3Case(i, label, 0, "") for i, label in enumerate(plan["poses"])]
     report = summary(data, cases)
+    if not report["kept"]:
+        raise ValueError(f"{pack}: no case has all {len(RAMPS)} drapes converged yet")
     drapes = np.stack([np.stack([_final(data["drapes"], r, c)[0] for r in RAMPS]) for c in report["kept"]])
     return drapes, report["kept"], report
 
