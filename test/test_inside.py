@@ -94,3 +94,66 @@ def test_clustered_winding_numbers_classify_like_the_exact_sum_on_a_self_overlap
     for chunk in (points[:300], points[300:]):
         assert {k: v for k, v in test.report(chunk).items() if k.endswith("count")} == \
             {k: v for k, v in inside_report(chunk, posed, faces).items() if k.endswith("count")}
+
+
+def _two_spheres():
+    va, fa = _sphere((0.0, 0.0, 0.0))
+    vb, fb = _sphere((1.5, 0.0, 0.0))
+    return np.vstack([va, vb]), np.vstack([fa, fb + len(va)])
+
+
+def test_the_split_is_part_aware_inside_one_part_near_the_overlap_is_truly_inside():
+    """Unit spheres centred 1.5 apart (an arm sunk into the torso): their overlap is the lens 0.5 < x < 1 on the
+    axis. A point inside the left sphere only is truly inside unless it sits within `radius` of the surface of the
+    overlap (the part of the right sphere's surface inside the left, whose tip is x = 0.5); a point inside both is
+    in the overlap wherever it is."""
+    vertices, faces = _two_spheres()
+    points = np.array([[0.75, 0.0, 0.0],  # the lens' centre: inside both parts
+                       [0.48, 0.0, 0.0],  # inside the left sphere only, 2 cm from the lens' tip (x = 0.5)
+                       [0.45, 0.0, 0.0],  # inside the left sphere only, 5 cm from the lens
+                       [0.30, 0.0, 0.0]])  # 20 cm from the lens
+    # the old rule (any overlapping body vertex within 3 cm) would have called the first three trapped; with the
+    # radius at 1 cm (the spheres' scale is a body's x 10 here) only the lens and its 1 cm shell are
+    report = inside_report(points, vertices, faces, radius=0.01)
+    assert report["inside"].all()
+    np.testing.assert_allclose(report["winding"], [2.0, 1.0, 1.0, 1.0], atol=0.02)
+    # (the facetted spheres put the lens' tip up to ~5 mm right of 0.5, so the distances are 2-2.5 and 5-5.5 cm)
+    assert report["in_overlap"].tolist() == [True, False, False, False]
+    wider = inside_report(points, vertices, faces, radius=0.08)
+    assert wider["in_overlap"].tolist() == [True, True, True, False]  # within 8 cm of the overlap's surface
+
+
+def test_the_split_on_anny_arms_down(body):
+    """Anny with the arms pressed into the torso, where the overlap is known: points on the arm's sunken surface
+    (inside the torso) are trapped; points 1.5 cm under the skin of the belly, of the back and of the outer upper
+    arm (inside one part, far from the overlap) went through the skin."""
+    from agentdress_ros.garment.binding import vertex_normals
+    from agentdress_ros.garment.inside import BodyInside
+    from agentdress_ros.sim.posing import visible_body
+
+    ids, faces = visible_body(body)
+    shape = body.shape()
+    pose = np.zeros((body.n_bones, 3))
+    for side, sign in (("Left", 1.0), ("Right", -1.0)):
+        pose[body.bone_index(f"{side}Arm")] = (0.0, sign * 0.9, 0.0)
+    posed = body.posed_vertices(shape, body.pose(shape, pose)[0])[ids]
+    normals = vertex_normals(posed, faces)
+    sunk = np.flatnonzero(self_overlapping_vertices(posed, faces))
+    test = BodyInside(posed, faces)
+    # on the sunken surface itself, 1 mm out along its own normal (still inside the other part): trapped
+    trapped = test.report(posed[sunk] + 1e-3 * normals[sunk])
+    assert trapped["inside_count"] >= 0.95 * len(sunk)
+    assert trapped["overlap_count"] == trapped["inside_count"]
+    # 1.5 cm under the skin, at vertices 10 cm or more from any sunken vertex
+    from scipy.spatial import cKDTree
+
+    far = cKDTree(posed[sunk]).query(posed, k=1)[0] > 0.10
+    bone = body.skin_indices[ids, 0]
+    picks = []
+    for name in ("Spine1", "LeftArm", "RightArm"):
+        candidates = np.flatnonzero(far & (bone == body.bone_index(name)))
+        picks.append(candidates[:: max(1, len(candidates) // 20)])
+    picks = np.concatenate(picks)
+    under = test.report(posed[picks] - 0.015 * normals[picks])
+    assert under["inside_count"] >= 0.9 * len(picks)
+    assert under["overlap_count"] == 0  # none of them is called trapped

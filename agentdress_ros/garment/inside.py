@@ -8,7 +8,11 @@ they subtend at p, / 4 pi, is 1 inside a closed surface, 0 outside, 2 where two 
 gracefully at small holes.
 
 `inside_report` splits the garment vertices inside the body into those trapped where the body overlaps itself
-(near body vertices that lie inside another body part) and those truly inside (cloth that went through skin).
+and those truly inside (cloth that went through skin). The split is part-aware: a point is in the self-overlap when
+it lies inside two body parts at once (winding number near 2: the overlap region itself) or within `radius` (a few
+millimetres, the cloth's contact thickness and a little more) of the overlap region's surface, i.e. of the body
+faces that lie inside another part. A point inside one part only, farther than that from the overlap, went through
+the skin, however near an armpit or crotch it sits.
 """
 from __future__ import annotations
 
@@ -17,9 +21,16 @@ import numpy as np
 
 from .binding import vertex_normals
 
-# A garment vertex inside the body counts as trapped by the body's self-overlap when a body vertex that lies inside
-# another body part is this close to it (the overlap regions are a few centimetres deep at armpits and thighs).
-OVERLAP_RADIUS = 0.03
+# A garment vertex inside the body counts as trapped by the body's self-overlap when it is inside two parts at once,
+# or this close to a body face that lies inside another part: 2.5x the cloth's 2 mm contact thickness (cloth resting
+# on skin that has sunk into another part sits about that far from it). The earlier rule, any overlapping body
+# vertex within 3 cm, called cloth that went through the skin near an armpit "trapped".
+OVERLAP_RADIUS = 0.005
+# Winding number above which a point is inside two parts at once (1 inside one part, 2 in their overlap).
+TWO_PARTS = 1.5
+# Body vertices this far beyond `radius` from an inside point are tested for overlap too: a face can be within
+# `radius` while its corners are an edge length away (Anny's body edges are up to about 2 cm).
+_FACE_REACH = 0.025
 # Body vertices are tested a little outside their own surface, so that their own part contributes ~0 and only
 # another part's volume can put them inside.
 _SURFACE_LIFT = 1.0e-3
@@ -170,29 +181,41 @@ class BodyInside:
         return self.field(np.asarray(points, dtype=np.float64)) > 0.5
 
     def report(self, points) -> dict:
-        """{"inside": mask (P,), "in_overlap": mask (P,) of inside points within `radius` of a body vertex that lies
-        inside another body part, "truly_inside": mask (P,), and the counts "inside_count", "overlap_count",
-        "truly_inside_count"} for points (P, 3)."""
-        from scipy.spatial import cKDTree
-
-        points = np.asarray(points, dtype=np.float64)
-        inside = self.inside(points)
-        in_overlap = np.zeros(len(points), dtype=bool)
-        if inside.any():
-            near = np.unique(np.concatenate([np.asarray(ids, dtype=np.int64) for ids in
-                                             self.tree.query_ball_point(points[inside], self.radius)]
-                                            + [np.zeros(0, int)]))
-            new = near[~self.tested[near]]
-            if len(new):
-                self.overlap |= self_overlapping_vertices(self.vertices, self.faces, new, self.field)
-                self.tested[new] = True
-            if self.overlap[near].any():
-                distance, _ = cKDTree(self.vertices[near[self.overlap[near]]]).query(points[inside], k=1)
-                in_overlap[np.flatnonzero(inside)] = distance < self.radius
+        """{"inside": mask (P,), "in_overlap": mask (P,) of inside points in the body's self-overlap (inside two
+        parts at once, or within `radius` of a body face that lies inside another part), "truly_inside": mask (P,),
+        "winding": (P,) winding numbers, and the counts "inside_count", "overlap_count", "truly_inside_count"} for
+        points (P, 3)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        winding = self.field(points)
+        inside = winding > 0.5
+        in_overlap = inside & (winding > TWO_PARTS)
+        rest = np.flatnonzero(inside & ~in_overlap)
+        if len(rest):
+            distance = self.distance_to_overlap(points[rest])
+            in_overlap[rest] = distance < self.radius
         truly = inside & ~in_overlap
-        return {"inside": inside, "in_overlap": in_overlap, "truly_inside": truly,
+        return {"inside": inside, "in_overlap": in_overlap, "truly_inside": truly, "winding": winding,
                 "inside_count": int(inside.sum()), "overlap_count": int(in_overlap.sum()),
                 "truly_inside_count": int(truly.sum())}
+
+    def distance_to_overlap(self, points) -> np.ndarray:
+        """(P,) distance of points (P, 3) to the nearest body face with a corner inside another body part (inf where
+        none is near): the surface of the overlap region. Body vertices near the points are tested on demand."""
+        import trimesh
+
+        near = np.unique(np.concatenate([np.asarray(ids, dtype=np.int64) for ids in
+                                         self.tree.query_ball_point(points, self.radius + _FACE_REACH)]
+                                        + [np.zeros(0, np.int64)]))
+        new = near[~self.tested[near]]
+        if len(new):
+            self.overlap |= self_overlapping_vertices(self.vertices, self.faces, new, self.field)
+            self.tested[new] = True
+        faces = self.faces[self.overlap[self.faces].any(axis=1)]
+        if not len(faces):
+            return np.full(len(points), np.inf)
+        used, local = np.unique(faces, return_inverse=True)
+        mesh = trimesh.Trimesh(self.vertices[used], local.reshape(-1, 3), process=False)
+        return trimesh.proximity.closest_point(mesh, points)[1]
 
 
 def inside_report(points, body_vertices, body_faces, radius: float = OVERLAP_RADIUS) -> dict:
