@@ -65,8 +65,8 @@ def _jobs(db, poses, betas, extended: bool, only=None) -> list:
 
     max_frames = EXTENDED_MAX_FRAMES if extended else FIRST_MAX_FRAMES
     jobs = []
-    for ramp in RAMPS:
-        for c, (pose, beta) in enumerate(zip(poses, betas)):
+    for c, (pose, beta) in enumerate(zip(poses, betas)):  # case by case, so complete cases accumulate first
+        for ramp in RAMPS:
             if only is None or (ramp, c) in only:
                 kind = f"v3r{ramp}{'x' if extended else ''}"
                 jobs.append(DrapeJob(kind, c, 0, pose, beta, db.garment, db.n_vertices,
