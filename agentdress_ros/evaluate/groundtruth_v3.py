@@ -61,7 +61,7 @@ def drape_key(ramp: int, case: int, extended: bool = False) -> str:
 
 
 def _jobs(db, poses, betas, extended: bool, only=None) -> list:
-    from ..build.jobs import DrapeJob
+    from ..offline.jobs import DrapeJob
 
     max_frames = EXTENDED_MAX_FRAMES if extended else FIRST_MAX_FRAMES
     jobs = []
@@ -90,8 +90,8 @@ def make_v3_drapes(database, pack, cache, workers: int = 0, progress: bool = Tru
     """Drape every v3 case along every ramp (the first `cases` cases when given), extend the drapes that did not
     converge, and pack them all into `pack`. Returns the convergence summary (`summary`)."""
     from ..body import AnnyBody
-    from ..build.builder import run_jobs
-    from ..build.jobs import DrapeStore, read_drape_pack
+    from ..offline.builder import run_jobs
+    from ..offline.jobs import DrapeStore, read_drape_pack
     from ..engine import read_database
 
     db = read_database(database)
@@ -152,7 +152,7 @@ def summary(pack: dict, cases: list) -> dict:
 
 def v3_drapes(pack) -> tuple[np.ndarray, list, dict]:
     """(drapes (C, R, V, 3) of the kept cases, their case indices, summary) from a v3 pack."""
-    from ..build.jobs import read_drape_pack
+    from ..offline.jobs import read_drape_pack
 
     data = read_drape_pack(pack)
     plan = json.loads(data["plan_key"])
