@@ -15,7 +15,7 @@ PACKAGE = "agentdress_ros"
 setup(
     name=PACKAGE,
     version="0.1.0",
-    # Namespace-aware discovery: a sub-package without __init__.py (build/, engine/ at the time of writing) is still
+    # Namespace-aware discovery: a sub-package without __init__.py (engine/ at the time of writing) is still
     # installed by colcon / a wheel instead of being dropped silently. test/ is never part of the package.
     packages=find_namespace_packages(include=[PACKAGE, f"{PACKAGE}.*"], exclude=["*.__pycache__", "test", "test.*"]),
     data_files=[

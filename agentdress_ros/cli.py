@@ -35,14 +35,14 @@ PASSTHROUGH = (
     ("eval", ".evaluate.evaluate", "main", "speed vs accuracy against held-out newton drapes (trade table, plots)"),
     ("floor", ".evaluate.floor", "main", "the ground truth's own spread: held-out cases draped along another valid "
      "path"),
-    ("sequences", ".build.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),
-    ("settle", ".build.settled", "main", "settle dynamic training frames into static drapes (resumable) and pack them"),
-    ("regressor", ".build.regressor", "main", "train the regressor pose model from a sequence pack into a database"),
-    ("recurrent", ".build.recurrent", "main", "train the recurrent pose model (a GRU over the regressor's inputs) "
+    ("sequences", ".offline.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),
+    ("settle", ".offline.settled", "main", "settle dynamic training frames into static drapes (resumable) and pack them"),
+    ("regressor", ".offline.regressor", "main", "train the regressor pose model from a sequence pack into a database"),
+    ("recurrent", ".offline.recurrent", "main", "train the recurrent pose model (a GRU over the regressor's inputs) "
      "into a database"),
-    ("santesteban", ".build.santesteban", "main", "train Santesteban et al.'s garment model (model=santesteban) into "
+    ("santesteban", ".offline.santesteban", "main", "train Santesteban et al.'s garment model (model=santesteban) into "
      "a database"),
-    ("shape-residual", ".build.shape_residual", "main", "train the shape residual (engine shape_residual) from drapes "
+    ("shape-residual", ".offline.shape_residual", "main", "train the shape residual (engine shape_residual) from drapes "
      "at random shapes into a database"),
 )
 
@@ -77,7 +77,7 @@ def _demo_png(args) -> int:
 def _build(args) -> int:
     import json
 
-    from .build.builder import BuildConfig, build_database
+    from .offline.builder import BuildConfig, build_database
 
     config = BuildConfig(
         garment=args.garment,

@@ -13,9 +13,9 @@ import pytest
 pytest.importorskip("newton", reason="newton (the build extra, requirements/build.txt) is not installed")
 pytest.importorskip("dask.distributed", reason="dask distributed (requirements/build.txt) is not installed")
 
-from agentdress_ros.build.builder import BuildConfig, build_database  # noqa: E402
-from agentdress_ros.build.shape_model import fit_shape_model  # noqa: E402
-from agentdress_ros.build.shapes import shape_scale, training_shapes  # noqa: E402
+from agentdress_ros.offline.builder import BuildConfig, build_database  # noqa: E402
+from agentdress_ros.offline.shape_model import fit_shape_model  # noqa: E402
+from agentdress_ros.body.training_shapes import shape_scale, training_shapes  # noqa: E402
 from agentdress_ros.engine.database import read_database  # noqa: E402
 
 # A coarse garment, two anchors, five shapes, short drapes: every stage runs, in about a minute.
@@ -195,7 +195,7 @@ def test_drapes_without_a_plan_are_not_reused(tiny_build, tmp_path):
 def test_template_hash_follows_the_template(body):
     from dataclasses import replace
 
-    from agentdress_ros.build.builder import template_hash
+    from agentdress_ros.offline.builder import template_hash
     from agentdress_ros.garment import make_garment
     from agentdress_ros.garment.binding import SurfaceBinding
 
@@ -214,9 +214,9 @@ def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(ti
     """A build continued elsewhere from a pack of its drapes fits the same database; a partial database keeps only
     the anchors whose drapes are all there. A pack from before drape environments were recorded (like the shipped
     ones) is still accepted, with a warning that says so."""
-    from agentdress_ros.build.jobs import DrapeStore
+    from agentdress_ros.offline.jobs import DrapeStore
 
-    from agentdress_ros.build.jobs import read_drape_pack
+    from agentdress_ros.offline.jobs import read_drape_pack
 
     reference_path, _ = tiny_build
     work = reference_path.parent / (reference_path.name + ".work")
@@ -258,8 +258,8 @@ def test_drapes_travel_in_one_pack_and_partial_databases_use_complete_anchors(ti
 
 def test_pack_from_another_drape_environment_is_refused(tmp_path):
     """A pack records the drape environment; one made under another (here: warp) is refused, naming the change."""
-    from agentdress_ros.build.builder import DRAPE_PACKAGES
-    from agentdress_ros.build.jobs import DrapeStore
+    from agentdress_ros.offline.builder import DRAPE_PACKAGES
+    from agentdress_ros.offline.jobs import DrapeStore
 
     source = DrapeStore(tmp_path / "source")
     for k in range(3):
@@ -282,7 +282,7 @@ def test_pack_is_bit_exact_in_either_precision_and_reads_the_older_layout(tmp_pa
     """Drapes that float32 holds exactly (newton's) are packed as float32 (shuffled, lzma), others as float64: both
     come back bit for bit with their stats. Packs in the older layouts (one float32 array; one entry per drape and
     field) still unpack."""
-    from agentdress_ros.build.jobs import DrapeStore, read_drape_pack
+    from agentdress_ros.offline.jobs import DrapeStore, read_drape_pack
 
     plan_key = BuildConfig(**TINY).plan_key()
     rng = np.random.default_rng(0)
@@ -322,7 +322,7 @@ def test_pack_is_bit_exact_in_either_precision_and_reads_the_older_layout(tmp_pa
 def test_engine_reproduces_training_drapes_through_the_residual_basis(tiny_build, body):
     """The engine adds the garment fitted to beta and skinned back to the residual shape model: at an anchor pose
     and a training shape it returns that drape up to the shape model's own fit error."""
-    from agentdress_ros.build.jobs import DrapeStore
+    from agentdress_ros.offline.jobs import DrapeStore
     from agentdress_ros.engine import Engine, EngineConfig
 
     out, report = tiny_build

@@ -178,7 +178,7 @@ def test_faces_under_the_cloth_in_every_pose_of_a_range_are_hidden_and_no_others
     cloth facing its way in each pose (no gap opens); a longer range hides no more."""
     from agentdress_ros.body import REFERENCE_SHAPE
     from agentdress_ros.display.models import always_covered, pose_range
-    from agentdress_ros.ros.garment_models import BodyModel, SkinnedGarmentModel
+    from agentdress_ros.models.garment_models import BodyModel, SkinnedGarmentModel
 
     model = SkinnedGarmentModel(tshirt, body)
     poses = pose_range(("walk",), every=12)
@@ -237,7 +237,7 @@ def test_faces_hidden_over_a_range_of_shapes_are_those_under_cloth_on_each(body,
     every shape of the range (checked at the extremes of weight, where a T-shirt sits loosest and tightest)."""
     from agentdress_ros.body import REFERENCE_SHAPE
     from agentdress_ros.display.models import always_covered, garment_rest, pose_range, shape_range
-    from agentdress_ros.ros.garment_models import BodyModel, SkinnedGarmentModel
+    from agentdress_ros.models.garment_models import BodyModel, SkinnedGarmentModel
 
     model = SkinnedGarmentModel(tshirt, body)
     edges = boundary_distance(garment_rest(model, body), model.faces)  # the open edges' distances it judges by

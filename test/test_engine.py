@@ -321,7 +321,7 @@ def test_garment_and_body_are_fitted_to_the_same_shape_beyond_the_training_range
     from pathlib import Path
 
     from agentdress_ros.garment.binding import signed_clearance
-    from agentdress_ros.ros.garment_models import make_garment_model
+    from agentdress_ros.models.garment_models import make_garment_model
 
     path = Path(__file__).resolve().parents[1] / "data" / "tshirt_default.h5"
     if not path.is_file():

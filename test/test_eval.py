@@ -218,7 +218,7 @@ def test_floor_drapes_the_held_out_cases_along_another_path_and_compares(quick_e
 def test_floor_along_the_databases_path_warm_starts_every_shape_from_the_drape_at_beta0(quick_eval, tmp_path):
     """`agentdress floor --path database` on the quick v2 set: every shape of the pose is draped again from the pose's
     drape at beta0 with the build's warm settings and compared with its held-out drape; a rerun simulates nothing."""
-    from agentdress_ros.build.jobs import read_drape_pack
+    from agentdress_ros.offline.jobs import read_drape_pack
     from agentdress_ros.engine import read_database
     from agentdress_ros.evaluate.floor import ground_truth_spread
 

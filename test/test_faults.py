@@ -226,8 +226,8 @@ def _http(port: int, method: str, path: str) -> tuple[int, bytes]:
 
 
 def test_viewer_answers_bad_requests_with_400_and_goes_on(tmp_path):
-    from agentdress_ros.display.scene import DisplayScene
-    from agentdress_ros.display.server import DisplayServer
+    from agentdress_ros.viewer.state import DisplayScene
+    from agentdress_ros.viewer.server import DisplayServer
 
     web = tmp_path / "web"  # a stand-in client folder: the server's answers do not depend on three.js being there
     (web / "src").mkdir(parents=True)

@@ -68,14 +68,14 @@ def test_ratio_to_ceiling_and_intervals():
 
 
 def _pack_of(tmp_path, entries):
-    from agentdress_ros.build.jobs import write_drape_pack
+    from agentdress_ros.offline.jobs import write_drape_pack
 
     keys = [k for k, _ in entries]
     stats = [s for _, s in entries]
     vertices = [np.full((4, 3), i, dtype=np.float32) for i in range(len(keys))]
     path = tmp_path / "v3.npz"
     write_drape_pack(path, keys, vertices, stats, json.dumps({"poses": ["a@1", "b@2"]}), {"commit": "abc"})
-    from agentdress_ros.build.jobs import read_drape_pack
+    from agentdress_ros.offline.jobs import read_drape_pack
 
     return path, read_drape_pack(path)
 

@@ -54,7 +54,7 @@ def test_inside_report_separates_trapped_from_truly_inside_points():
 
 
 def test_anny_at_rest_does_not_overlap_itself_where_garments_go_but_arms_down_it_does(body):
-    from agentdress_ros.sim.posing import visible_body
+    from agentdress_ros.body import visible_body
 
     ids, faces = visible_body(body)
     shape = body.shape()
@@ -74,7 +74,7 @@ def test_clustered_winding_numbers_classify_like_the_exact_sum_on_a_self_overlap
     """Cloth-like points around Anny in an arms-down pose (arm passing into the torso) and random points in its
     box: the dipole far field stays within 0.02 of the exact sum, so no point changes side of 0.5 (or of 1.5)."""
     from agentdress_ros.garment.inside import BodyInside
-    from agentdress_ros.sim.posing import visible_body
+    from agentdress_ros.body import visible_body
 
     ids, faces = visible_body(body)
     shape = body.shape()

@@ -10,8 +10,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from agentdress_ros.body.kinematics import forward_kinematics, linear_blend_skinning
-from agentdress_ros.build.sequences import load_sequence_pack
-from agentdress_ros.build.regressor import RegressorSettings, pose_dofs, predict
+from agentdress_ros.offline.sequences import load_sequence_pack
+from agentdress_ros.offline.regressor import RegressorSettings, pose_dofs, predict
 from agentdress_ros.engine import Engine, EngineConfig
 from agentdress_ros.engine.database import KDSM_ARRAYS, DatabaseError, KdsmModel, as_stored, read_database
 from agentdress_ros.garment.binding import mesh_edges, vertex_normals
@@ -20,18 +20,18 @@ from agentdress_ros.kdsm.inverse import candidate_parents, graph_laplacian, harm
 from agentdress_ros.kdsm.lattice import lattice_tet_nodes, locate_lattice_tets, node_positions, signed_volumes
 from agentdress_ros.kdsm.mesh import (KDSMSettings, build_kdsm, diffused_weights, load_kdsm, save_kdsm,
                                       spatially_ordered)
-from agentdress_ros.kdsm.model import (SurfacePoser, compare, fit_displacements, kdsm_targets, posed_kdsm,
+from agentdress_ros.offline.kdsm_model import (SurfacePoser, compare, fit_displacements, kdsm_targets, posed_kdsm,
                                        store_kdsm_model)
 from agentdress_ros.kdsm.surface import anchor_garment, from_surface, surface_frames, to_surface
-from agentdress_ros.kdsm.training import (TargetSettings, pack_frames, reconstruction_table, spread_frames,
+from agentdress_ros.offline.kdsm_training import (TargetSettings, pack_frames, reconstruction_table, spread_frames,
                                           training_targets)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATABASE = ROOT / "data" / "tshirt_default.h5"
 PACK = ROOT / "data" / "tshirt_sequences.npz"
-SPACING = 0.05  # coarse: a few seconds to build; the paper's numbers are measured at 2.5 cm (kdsm.training)
+SPACING = 0.05  # coarse: a few seconds to build; the paper's numbers are measured at 2.5 cm (offline.kdsm_training)
 # the T-shirt pack's drapes reach 15 cm (99th percentile of frames) to 23 cm (farthest frame) from the posed body
-# (kdsm.training.drape_clearance); the four frames used here stay well inside 21 cm
+# (offline.kdsm_training.drape_clearance); the four frames used here stay well inside 21 cm
 THICKNESS = 0.21
 
 
@@ -531,7 +531,7 @@ def test_body_surface_offsets_are_exact_coordinates_and_ignore_a_rigid_motion(bo
 
 
 def test_held_out_folds_split_whole_clips_or_random_frames():
-    from agentdress_ros.kdsm.model import held_out_folds
+    from agentdress_ros.offline.kdsm_model import held_out_folds
 
     groups = np.array(["a", "a", "b", "b", "b", "c", "d", "d"])
     for split in ("clips", "frames"):

@@ -144,7 +144,7 @@ def test_serialized_bones_carry_the_skinning_transforms_and_reproduce_the_body_f
     from agentdress_ros.body import AnnyBody
     from agentdress_ros.body.kinematics import linear_blend_skinning
     from agentdress_ros.motion.rotations import rotvec_to_matrix
-    from agentdress_ros.ros.garment_models import BodyModel, skin_binding
+    from agentdress_ros.models.garment_models import BodyModel, skin_binding
     from agentdress_ros.ros.messages import SerializedBones, bones_to_transforms, make_skin, skin_to_arrays
 
     body = AnnyBody()

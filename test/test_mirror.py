@@ -1,4 +1,4 @@
-"""Left-right mirror images of training drapes (build.mirror): the reflected pose poses the reflected skeleton, the
+"""Left-right mirror images of training drapes (offline.mirror): the reflected pose poses the reflected skeleton, the
 reflected rest-frame garment skins to the reflected drape, and an asymmetric garment is refused."""
 from dataclasses import replace
 from pathlib import Path
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from agentdress_ros.body.kinematics import forward_kinematics, linear_blend_skinning
-from agentdress_ros.build.mirror import (REFLECTION, Mirror, bone_twins, mirrored_poses, mirrored_positions,
+from agentdress_ros.offline.mirror import (REFLECTION, Mirror, bone_twins, mirrored_poses, mirrored_positions,
                                          twin_name)
-from agentdress_ros.build.regressor import (RegressorSettings, example_data, pose_dofs, settled_data,
+from agentdress_ros.offline.regressor import (RegressorSettings, example_data, pose_dofs, settled_data,
                                             validate_settled_copies)
 from agentdress_ros.engine import read_database
 

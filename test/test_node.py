@@ -55,7 +55,7 @@ def node_process(tmp_path_factory):
 @pytest.fixture(scope="module")
 def models(body):
     from agentdress_ros.garment import make_garment
-    from agentdress_ros.ros.garment_models import SkinnedGarmentModel
+    from agentdress_ros.models.garment_models import SkinnedGarmentModel
 
     # what the node publishes: the templates layered (T-shirt out of the trousers) and refined for display
     return dress_for_display({name: SkinnedGarmentModel(make_garment(name, body, n), body, START_SHAPE)
@@ -231,7 +231,7 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
     from pathlib import Path
 
     from agentdress_ros.engine import EngineConfig, read_database
-    from agentdress_ros.ros.garment_models import make_garment_model
+    from agentdress_ros.models.garment_models import make_garment_model
 
     database = Path(__file__).resolve().parents[1] / "data" / "tshirt_default.h5"
     if not database.is_file():
@@ -295,7 +295,7 @@ def test_node_runs_santesteban_per_garment(tmp_path, body):
     (status kind santesteban, the cloud equals the model's), the trousers stay AgentDress synthesis."""
     from pathlib import Path
 
-    from agentdress_ros.ros.garment_models import make_garment_model
+    from agentdress_ros.models.garment_models import make_garment_model
 
     data = Path(__file__).resolve().parents[1] / "data"
     domain = DOMAIN_ID + 5

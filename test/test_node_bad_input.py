@@ -121,7 +121,7 @@ def test_parameter_validation_reasons():
 
 
 def test_missing_database_names_the_file_or_falls_back_when_configured(body, tmp_path):
-    from agentdress_ros.ros.garment_models import GarmentDatabaseError
+    from agentdress_ros.models.garment_models import GarmentDatabaseError
 
     missing = tmp_path / "nope" / "tshirt.h5"
     scene = SceneSpec((GarmentSpec("tshirt", 300, str(missing)),), False, (0.5,) * 6)
@@ -350,7 +350,7 @@ def test_missing_database_stops_the_node_with_the_file_named(tmp_path):
 
 def test_ros_free_modules_do_not_import_rclpy():
     """The garment-model protocol, input checks, parameters and runtime are usable without ROS."""
-    code = ("import sys; import agentdress_ros.ros.garment_models, agentdress_ros.ros.inputs, "
+    code = ("import sys; import agentdress_ros.models.garment_models, agentdress_ros.ros.inputs, "
             "agentdress_ros.ros.params, agentdress_ros.ros.runtime; "
             "sys.exit('rclpy imported' if 'rclpy' in sys.modules else 0)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -1,4 +1,4 @@
-"""The `recurrent` pose model: a GRU over the regressor's inputs (build.recurrent with JAX, offline), its numpy
+"""The `recurrent` pose model: a GRU over the regressor's inputs (offline.recurrent with JAX, offline), its numpy
 inference with a state per model, storage."""
 from dataclasses import replace
 from pathlib import Path
@@ -7,9 +7,9 @@ import h5py
 import numpy as np
 import pytest
 
-from agentdress_ros.build.recurrent import RecurrentSettings, sequences, train
-from agentdress_ros.build.regressor import predict
-from agentdress_ros.build.sequences import load_sequence_pack
+from agentdress_ros.offline.recurrent import RecurrentSettings, sequences, train
+from agentdress_ros.offline.regressor import predict
+from agentdress_ros.offline.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
 from agentdress_ros.engine.pose_models import JUMP_RAD, canonical_poses
 
@@ -100,7 +100,7 @@ def test_database_round_trip_and_a_wrong_shape_named(tmp_path, database, trained
 def test_command_trains_into_the_database_and_no_learning_library_at_run_time(tmp_path):
     path = tmp_path / "tshirt.h5"
     path.write_bytes(DATABASE.read_bytes())
-    report = run_training_command("agentdress_ros.build.recurrent", "--database", path, "--pack", PACK, "--steps", 20,
+    report = run_training_command("agentdress_ros.offline.recurrent", "--database", path, "--pack", PACK, "--steps", 20,
                                   "--hidden", 8)
     assert report["settings"]["steps"] == 20
     assert_no_learning_library_after(

@@ -9,11 +9,11 @@ import h5py
 import numpy as np
 import pytest
 
-from agentdress_ros.build.regressor import (RegressorSettings, TrainingData, add_network_arguments, clip_folds,
+from agentdress_ros.offline.regressor import (RegressorSettings, TrainingData, add_network_arguments, clip_folds,
                                             coefficients_of, example_data, fit, model_inputs, network_settings,
                                             pack_data, pose_dofs, predict, region_parts, store_regressor,
                                             train_database_regressor, validate_example_copies, vertex_error)
-from agentdress_ros.build.sequences import load_sequence_pack
+from agentdress_ros.offline.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
 from agentdress_ros.engine.database import as_stored
 from agentdress_ros.engine.engine import permute_vertices, select_database
@@ -309,9 +309,9 @@ def test_settled_drapes_come_from_the_training_frames_and_join_the_regressor_dat
     """`agentdress settle`: frames of the sequence pack settle into static drapes with the body held still, starting
     where the dynamic simulation left the cloth (nothing lifted out); their pack reads like a sequence pack and
     `agentdress regressor --settled` trains on copies of them under their source clips. A rerun drapes nothing."""
-    from agentdress_ros.build.jobs import DrapeStore
-    from agentdress_ros.build.regressor import training_frames, training_key
-    from agentdress_ros.build.settled import settle_pack
+    from agentdress_ros.offline.jobs import DrapeStore
+    from agentdress_ros.offline.regressor import training_frames, training_key
+    from agentdress_ros.offline.settled import settle_pack
 
     out = tmp_path / "settled.npz"
     report = settle_pack(DATABASE, PACK, out, 2, workers=0, progress=False, drape={"max_frames": 12, "min_frames": 4})
@@ -359,8 +359,8 @@ def test_drapes_from_rest_are_draped_like_the_anchors_in_a_spread_order(tmp_path
     """`agentdress settle --start rest`: the pack frames' poses draped the way the anchors and the held-out set are
     (the garment at rest on the body at rest, carried into the pose by the animated collider, the database's drape
     settings), in an order whose every prefix is spread over the frames."""
-    from agentdress_ros.build.jobs import DrapeStore
-    from agentdress_ros.build.settled import rest_start_jobs, settle_pack, spread_order
+    from agentdress_ros.offline.jobs import DrapeStore
+    from agentdress_ros.offline.settled import rest_start_jobs, settle_pack, spread_order
 
     assert spread_order(8).tolist() == [0, 4, 2, 6, 1, 5, 3, 7]
     assert sorted(spread_order(13).tolist()) == list(range(13)) and spread_order(1).tolist() == [0]
@@ -380,7 +380,7 @@ def test_drapes_from_rest_are_draped_like_the_anchors_in_a_spread_order(tmp_path
     assert all(s["ramp_frames"] == 3 and s["pushed_out"] == 0 for s in stats)
     # more drapes later: 2n - 1 frames beside a pack of n settle the n - 1 halfway between, none of the n again,
     # and the regressor trains on both packs
-    from agentdress_ros.build.regressor import training_frames, training_key
+    from agentdress_ros.offline.regressor import training_frames, training_key
 
     between = settle_pack(DATABASE, PACK, tmp_path / "between.npz", 5, workers=0, progress=False, drape=tiny,
                           start="rest", skip=out)
@@ -402,9 +402,9 @@ def test_novel_frames_go_where_the_training_poses_are_sparsest(tmp_path, databas
     """--select novel: greedy farthest-point sampling in the regressor's standardised pose inputs. The first pick is
     the pack frame farthest from the covered poses and their mirror images (checked by brute force), each pick is
     no nearer than the next, a pose already covered is never picked, and the settled pack holds the picks."""
-    from agentdress_ros.build.mirror import bone_twins, mirrored_poses
-    from agentdress_ros.build.regressor import standardized_inputs
-    from agentdress_ros.build.settled import novel_frames, settle_pack
+    from agentdress_ros.offline.mirror import bone_twins, mirrored_poses
+    from agentdress_ros.offline.regressor import standardized_inputs
+    from agentdress_ros.offline.settled import novel_frames, settle_pack
     from agentdress_ros.engine.pose_models import canonical_poses
 
     pack = load_sequence_pack(PACK)
@@ -434,8 +434,8 @@ def test_drapes_from_rest_of_another_garment_at_the_packs_poses(tmp_path):
     """A garment without a sequence pack of its own (the long sleeve) is draped from rest at the poses of another
     garment's pack: the pack written is the database's garment (its vertices, faces and rest), and the drapes come
     back from its rest-frame offsets. Settling from the pack's own cloth needs the pack's garment: refused by name."""
-    from agentdress_ros.build.jobs import DrapeStore
-    from agentdress_ros.build.settled import settle_pack
+    from agentdress_ros.offline.jobs import DrapeStore
+    from agentdress_ros.offline.settled import settle_pack
     from agentdress_ros.engine import read_database
 
     sleeve_path = ROOT / "data" / "longsleeve_default.h5"
@@ -459,7 +459,7 @@ def test_drapes_from_rest_of_another_garment_at_the_packs_poses(tmp_path):
 def test_validation_on_held_out_clips_static_drapes_weighs_their_copies(database, frames):
     """--validate-settled: each fold trains on the other clips' frames and static drapes (count copies) and scores
     the held-out clips' static drapes; 0 copies is the model without them."""
-    from agentdress_ros.build.regressor import validate_settled_copies
+    from agentdress_ros.offline.regressor import validate_settled_copies
 
     dofs = pose_dofs(database, "sensitive")
     clips = np.unique(frames.groups)

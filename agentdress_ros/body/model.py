@@ -97,3 +97,11 @@ class AnnyBody:
         """All V body vertices skinned with `transforms` (B, 3, 4) -> (V, 3)."""
         out = np.empty_like(shape.vertices) if out is None else out
         return linear_blend_skinning(shape.vertices, self.skin_indices, self.skin_weights, transforms, out)
+
+
+def visible_body(body):
+    """(vertex ids (N,), faces (G, 3) re-indexed onto them): the closed body surface a collider uses."""
+    ids = body.body_vertex_ids
+    remap = np.full(len(body.assets.template), -1)
+    remap[ids] = np.arange(len(ids))
+    return ids, remap[body.body_faces]

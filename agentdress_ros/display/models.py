@@ -27,7 +27,7 @@ from ..engine.layering import bind_layers, bind_under, lift_over_inner, push_out
 from ..engine.subdivision import LoopSubdivision
 from ..garment.binding import face_normals, vertex_normals
 from ..garment.coverage import MAX_GAP, cover_depth, faces_with_vertices, sloped, tuck_depth
-from ..ros.garment_models import BodyModel
+from ..models.garment_models import BodyModel
 
 __all__ = ["POSE_RANGE", "TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "always_covered", "dress_for_display",
            "garment_rest", "pose_range", "shape_range"]
@@ -225,8 +225,8 @@ def pose_range(motions=POSE_RANGE, every: int = POSE_STEP):
 
 def shape_range() -> np.ndarray:
     """(S, 6) the shapes body faces are hidden over: the reference shape and the outer training levels of each
-    training phenotype (build.shapes), where a garment sits loosest and tightest."""
-    from ..build.shapes import training_shapes
+    training phenotype (body.training_shapes), where a garment sits loosest and tightest."""
+    from ..body.training_shapes import training_shapes
 
     shapes = training_shapes()
     return np.concatenate([shapes[:1], shapes[1:].reshape(-1, 4, 6)[:, [0, 3]].reshape(-1, 6)])

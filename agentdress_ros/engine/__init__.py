@@ -1,6 +1,6 @@
 """Runtime engine: database reader, pose models, synthesis (Eq. 4, 7-8), refinement (Eq. 9-10).
 
-Never imports rclpy, newton, agentdress_ros.sim or agentdress_ros.build. Names are imported lazily so that
+Never imports rclpy, newton, agentdress_ros.sim or agentdress_ros.offline. Names are imported lazily so that
 `agentdress_ros.engine.database` (used by the build stage) stays light.
 """
 from __future__ import annotations

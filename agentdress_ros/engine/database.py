@@ -42,12 +42,12 @@ at run time. A held-out shape that changes four phenotypes at once is reproduced
 | pose_model/kdsm/rest | (V, 3) f32 | u^{m_o}: the rest garment the displacements are learned for (in this file's vertex order) |
 | pose_model/kdsm/regressor/... | as pose_model/regressor | the learned d(theta): PCA of the plastic displacements d, MLP from the pose |
 | pose_model/recurrent/input_weights, .../state_weights, .../bias, .../output_weights, .../output_bias | (I, 3H), (H, 3H), (3H,), (H, G), (G,) f32 | optional recurrent correction of pose_model/regressor (engine.pose_models.RecurrentPoseModel): a GRU over the regressor's standardised inputs (gates z, r, n in that order) whose state adds output_weights h + output_bias to the regressor's standardised outputs; attrs hidden (H), info (JSON) |
-| shape_model/residual/... | as pose_model/regressor, dofs in [0, D + 6) | optional learned correction of synthesis at other body shapes (EngineConfig.shape_residual, build.shape_residual): inputs the D pose dofs followed by the 6 phenotypes, output a rest-frame displacement added to the blended shape delta; info (JSON) names the engine configuration it was trained against |
+| shape_model/residual/... | as pose_model/regressor, dofs in [0, D + 6) | optional learned correction of synthesis at other body shapes (EngineConfig.shape_residual, offline.shape_residual): inputs the D pose dofs followed by the 6 phenotypes, output a rest-frame displacement added to the blended shape delta; info (JSON) names the engine configuration it was trained against |
 | garment_model/santesteban/fit/..., .../wrinkles/... | as pose_model/regressor, dofs in [0, D + 6) | optional garment model of Santesteban et al. 2019 (engine.santesteban): its inputs are the D pose dofs followed by the 6 phenotypes; fit R_G(beta) and wrinkles R_L(beta, theta), both rest-frame displacements of the garment; attrs info (JSON) |
 
 The regressor (Santesteban et al. 2019, Sec. 3-4) is f(beta0, theta) in the rest frame: the garment unposed with
 beta0's bones (their Eq. 5), reduced by PCA, regressed from the pose by an MLP (hidden layers `activation`, the last
-linear). Trained offline (`agentdress regressor`, build.regressor); evaluated with numpy (engine.pose_models). A
+linear). Trained offline (`agentdress regressor`, offline.regressor); evaluated with numpy (engine.pose_models). A
 parts regressor (info "parts") is the same arrays holding one PCA and MLP per garment region side by side: no weight
 joins two parts, and each part's basis rows are its own PCA times its blend weight on its own vertices (so they are
 orthonormal only within one part).
@@ -55,7 +55,7 @@ orthonormal only within one part).
 The KDSM group (KDSM paper, Sec. 3-6) is the `kdsm` pose model: a skinned tet mesh of the air around the body at
 beta0 and an MLP of the same kind learning the plastic displacements d(theta) of the garment in it; at run time
 rest + d is re-embedded in the lattice and the parent tet skinned (world positions). Trained offline
-(`python -m agentdress_ros.kdsm.model`).
+(`python -m agentdress_ros.evaluate.kdsm_comparison`).
 """
 from __future__ import annotations
 

@@ -232,7 +232,7 @@ class RegressorDecoder:
                                           dtype=dtype)  # (G, 3V): x row, y row, z row
         self.mean = np.ascontiguousarray(mean.T.reshape(-1), dtype=dtype)
         blocks = mlp_blocks(self.weights, unit)
-        # a parts regressor (build.regressor.merged_parts): each block alone, none of the zeros between them
+        # a parts regressor (offline.regressor.merged_parts): each block alone, none of the zeros between them
         self.blocks = None if blocks is None else _Blocks(self.weights, self.biases, basis, dtype, self.relu, blocks)
         self._allocate()
 
@@ -295,7 +295,7 @@ class RegressorDecoder:
 
 def mlp_blocks(weights: list, basis: np.ndarray) -> list | None:
     """[(input rows, hidden units, outputs, vertices)] of a one-hidden-layer MLP whose units fall into independent
-    blocks (a parts regressor, build.regressor.merged_parts: no weight joins two blocks, each block's outputs decode
+    blocks (a parts regressor, offline.regressor.merged_parts: no weight joins two blocks, each block's outputs decode
     onto its own vertices of basis (G, V, 3)); None when it is one block. Found from the exact zeros."""
     if len(weights) != 2:
         return None
@@ -418,7 +418,7 @@ class RecurrentPoseModel:
     database's pose_model/recurrent group runs over the regressor's standardised inputs, one step per frame, and its
     state adds a correction to the regressor's standardised outputs before they are decoded. The state belongs to
     this model (a fork starts its own), restarts on reset() (the node resets on a stamp jump) and on a pose jump
-    (JUMP_RAD). Trained on 30 fps sequences (build.recurrent): one step per new pose at about that rate."""
+    (JUMP_RAD). Trained on 30 fps sequences (offline.recurrent): one step per new pose at about that rate."""
 
     name = "recurrent"
     skinned = True
@@ -506,7 +506,7 @@ class KdsmPoseModel:
         model = db.kdsm_model
         if model is None:
             raise ValueError("pose model 'kdsm' needs a database with pose_model/kdsm (train one with "
-                             "`python -m agentdress_ros.kdsm.model`)")
+                             "`python -m agentdress_ros.evaluate.kdsm_comparison`)")
         distance, ids = cKDTree(np.asarray(model.rest, dtype=np.float64)).query(np.asarray(db.rest, dtype=np.float64))
         if len(ids) and distance.max() > 1e-6:
             raise ValueError("pose model 'kdsm': the database's garment is not the one its KDSM group was trained "

@@ -7,7 +7,7 @@
 
 T is the database's rest garment (beta0), W_g its skinning weights (interpolated from the closest body triangle, as
 their Eq. 3 does); R_G and R_L are the two regressors of the database's garment_model/santesteban group (trained
-by `agentdress santesteban`, build.santesteban), evaluated with numpy: no learning library at run time. R_G runs
+by `agentdress santesteban`, offline.santesteban), evaluated with numpy: no learning library at run time. R_G runs
 once per shape. The post-process binds each garment vertex to its closest body vertex once per shape (on the
 shape's rest pose, as AgentDress Eq. 10 does) instead of searching the posed body every frame.
 """
@@ -61,7 +61,7 @@ def push_out_of_body(garment, bound, body_rest, body_normals, skin_indices, skin
 
 class SantestebanModel:
     """Santesteban et al.'s system on a database that holds garment_model/santesteban (see the module docstring),
-    under the node's garment-model protocol (ros.garment_models): name, faces (F, 3), n_vertices, kind;
+    under the node's garment-model protocol (models.garment_models): name, faces (F, 3), n_vertices, kind;
     set_shape(beta (6,)) -> clamped; synthesize(rotvecs (B, 3), root (3,)) -> (V, 3) float32 in the database's
     vertex order (an internal buffer); reset() (no frame history); clone() (buffers of its own)."""
 

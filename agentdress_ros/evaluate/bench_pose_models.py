@@ -36,7 +36,7 @@ def _median_ms(function, frames: int) -> float:
 def entry_config(entry: str) -> dict:
     """EngineConfig fields of a pose-model entry: "name" or "name,field=value,..." (values as JSON where they
     parse)."""
-    from ..build.shape_residual import engine_config
+    from ..offline.shape_residual import engine_config
 
     name, *knobs = entry.split(",")
     return {"pose_model": name, **engine_config(knobs)}

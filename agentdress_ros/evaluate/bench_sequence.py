@@ -92,7 +92,7 @@ def compare_stepping(motion, garment, beta, body, reference, variants, chunks: i
 
 def bench_sequence(clip=DEFAULT_CLIP, garment_name: str = "tshirt", vertices: int = 1200, chunks: int = 2,
                    variants=DEFAULT_VARIANTS, progress: bool = True, baseline: dict | None = None) -> dict:
-    from ..build.jobs import _body_and_garment
+    from ..offline.jobs import _body_and_garment
     from ..motion.retarget import load_cmu_motion
     from ..sim.sequence import SequenceSettings
 
@@ -122,7 +122,7 @@ def main(argv=None) -> int:
                         "are measured against ({} : the reference; {\"substeps\": 48} for a convergence study)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
-    from ..build.sequences import check_training_clips
+    from ..offline.sequences import check_training_clips
 
     check_training_clips([args.clip])
     with contextlib.redirect_stdout(sys.stderr):  # warp's banner and progress lines: stdout is the JSON alone

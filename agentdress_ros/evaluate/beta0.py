@@ -17,8 +17,8 @@ import numpy as np
 
 def held_out_beta0(db, body, garment, config, cache, workers: int = 2, progress: bool = True, pack=None):
     """(P, V, 3) newton drapes at beta0 of the held-out poses of `config` (testset.HeldOutConfig)."""
-    from ..build.builder import run_jobs
-    from ..build.jobs import DrapeJob, DrapeStore
+    from ..offline.builder import run_jobs
+    from ..offline.jobs import DrapeJob, DrapeStore
     from .testset import _check_held_out, held_out_poses
 
     _check_held_out(db, config.clips)

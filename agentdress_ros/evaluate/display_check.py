@@ -45,7 +45,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
     from ..body import AnnyBody
     from ..garment.coverage import body_part_labels, poke_through, surface_side
     from ..ros.demo import load_clip, sweep_shape
-    from ..ros.garment_models import BodyModel
+    from ..models.garment_models import BodyModel
     from ..ros.runtime import build_model_set
 
     body = AnnyBody()

@@ -164,7 +164,7 @@ def beta0_report(db, body, poses, drapes) -> list[dict]:
 def _model(row: Row, db, body, garment):
     """An object with set_shape(beta) and synthesize(rotvecs, root) -> (V, 3) for the row."""
     if row.config is None:
-        from ..ros.garment_models import SkinnedGarmentModel
+        from ..models.garment_models import SkinnedGarmentModel
 
         return SkinnedGarmentModel(garment, body)
     if row.config.get("model") == "santesteban":
@@ -187,8 +187,8 @@ class InsideTest:
     truly through the skin. The body's winding field and self-overlap are built once per (pose, shape)."""
 
     def __init__(self, body, beta, pose):
+        from ..body import visible_body
         from ..garment.inside import BodyInside
-        from ..sim.posing import visible_body
 
         shape = body.shape(beta)
         transforms, _ = body.pose(shape, pose)
@@ -357,7 +357,7 @@ def stability_report(db, body, garment) -> list[dict]:
     """The engine's extreme inputs through the full pipeline (default config): for each case the largest distance
     (cm) from the skinned template at the same pose and (effective) shape, non-finite outputs and rejected frames."""
     from ..engine import Engine, EngineConfig
-    from ..ros.garment_models import SkinnedGarmentModel
+    from ..models.garment_models import SkinnedGarmentModel
 
     rng = np.random.default_rng(1)
     n_bones = len(db.bone_names)

@@ -41,13 +41,12 @@ def ground_truth_spread(db_path, cache, pack, out, alternative: dict, every: int
     `alternative`. Returns per-case and overall distances (cm) and writes floor.json (floor_database.json)."""
     if path not in PATHS:
         raise ValueError(f"path must be one of {', '.join(PATHS)}, got {path!r}")
-    from ..body import AnnyBody
-    from ..build.builder import run_jobs
-    from ..build.jobs import DrapeJob, DrapeStore
+    from ..body import AnnyBody, visible_body
+    from ..offline.builder import run_jobs
+    from ..offline.jobs import DrapeJob, DrapeStore
     from ..engine import read_database
     from ..garment import make_garment
     from ..garment.inside import BodyInside
-    from ..sim.posing import visible_body
     from .beta0 import held_out_beta0
     from .evaluate import held_out_config
     from .testset import held_out_poses, held_out_shapes, static_jobs, test_set_key

@@ -61,7 +61,7 @@ def drape_key(ramp: int, case: int, extended: bool = False) -> str:
 
 
 def _jobs(db, poses, betas, extended: bool, only=None) -> list:
-    from ..build.jobs import DrapeJob
+    from ..offline.jobs import DrapeJob
 
     max_frames = EXTENDED_MAX_FRAMES if extended else FIRST_MAX_FRAMES
     jobs = []
@@ -90,8 +90,8 @@ def make_v3_drapes(database, pack, cache, workers: int = 0, progress: bool = Tru
     """Drape every v3 case along every ramp (the first `cases` cases when given), extend the drapes that did not
     converge, and pack them all into `pack`. Returns the convergence summary (`summary`)."""
     from ..body import AnnyBody
-    from ..build.builder import run_jobs
-    from ..build.jobs import DrapeStore, read_drape_pack
+    from ..offline.builder import run_jobs
+    from ..offline.jobs import DrapeStore, read_drape_pack
     from ..engine import read_database
 
     db = read_database(database)
@@ -153,7 +153,7 @@ def summary(pack: dict, cases: list) -> dict:
 def v3_drapes(pack, expected_key: str | None = None) -> tuple[np.ndarray, list, dict]:
     """(drapes (C, R, V, 3) of the kept cases, their case indices, summary) from a v3 pack; with expected_key (the
     plan key of `v3_plan`), a pack of another garment, vertex count or case list is refused, naming what differs."""
-    from ..build.jobs import key_changes, read_drape_pack
+    from ..offline.jobs import key_changes, read_drape_pack
 
     data = read_drape_pack(pack)
     if expected_key is not None and data["plan_key"] != expected_key:

@@ -25,7 +25,7 @@ def shape_term(database, folder, engine: dict) -> dict:
     """Mean errors (cm) over the floor's database-path cases of one garment, for the EngineConfig `engine`:
     synthesis and oracle against the from-rest v2 drapes, and against the database-path drapes."""
     from ..body import AnnyBody
-    from ..build.jobs import read_drape_pack
+    from ..offline.jobs import read_drape_pack
     from ..engine import Engine, EngineConfig, read_database
     from .evaluate import synthesize_poses
     from .score_v3 import interval

@@ -2,7 +2,7 @@
 just outside its training range, with newton ground-truth drapes cached on disk (resumable like a build).
 
 `make_held_out_set(db, body, garment, HeldOutConfig, cache) -> HeldOutSet`. The drapes run through the build's job
-machinery (`build.jobs`, `build.builder.run_jobs`): one file per drape under `<cache>/drapes`, written atomically;
+machinery (`offline.jobs`, `offline.builder.run_jobs`): one file per drape under `<cache>/drapes`, written atomically;
 kill it and rerun, and only the missing drapes are simulated. For each pose the first shape is draped from the
 skinned garment and the others warm-start from that drape, as in the build.
 """
@@ -13,6 +13,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from ..sim.settings import WARM_DRAPE
 
 # CMU clips kept out of the default database's pose set (walk, brisk walk, dance with arms high, basketball shot,
 # run): real motion the database has never seen.
@@ -36,7 +38,7 @@ def held_out_v2(root: Path | None = None) -> "HeldOutConfig":
     (2 inside the training range, 1 just outside), draped with the animated collider (the body carried from rest
     into each pose), and dynamic sequences of 300 frames (30 fps) along two test clips, 02_08 (swordplay) and 05_12
     (dance, arms high), at beta0 and at the first inside shape."""
-    from ..build.sequences import TEST_CLIPS
+    from ..offline.sequences import TEST_CLIPS
 
     root = Path(root) if root is not None else default_clip_paths()[0].parent
     return HeldOutConfig(clips=[root / f"{name}.bvh" for name in TEST_CLIPS], poses_per_clip=4,
@@ -52,7 +54,7 @@ class HeldOutConfig:
     outside_margin: float = 0.05
     sequence_frames: int = 120  # frames (at 30 fps) of the first clip for timing and temporal jitter
     drape: dict = field(default_factory=dict)  # DrapeSettings overrides
-    warm_drape: dict = field(default_factory=lambda: {"velocity_retention": 0.75})
+    warm_drape: dict = field(default_factory=lambda: dict(WARM_DRAPE))
     seed: int = 0
     dynamic_clips: list = field(default_factory=list)  # .bvh paths simulated as whole sequences (sim.sequence)
     dynamic_frames: int = 300  # frames (30 fps) of each dynamic sequence
@@ -77,7 +79,7 @@ def held_out_shapes(db, config: HeldOutConfig) -> tuple[np.ndarray, list]:
     """(S, 6) shapes and their labels: uniform inside the training range, then just outside it (one trained
     phenotype past its low or high end by `outside_margin`, cycling through the phenotypes whose range leaves room
     inside Anny's [0, 1])."""
-    from ..build.shapes import trained_phenotypes, uniform_shapes
+    from ..body.training_shapes import trained_phenotypes, uniform_shapes
 
     rng = np.random.default_rng(config.seed)
     low, high = np.asarray(db.beta_range, dtype=np.float64).T
@@ -109,7 +111,7 @@ def _check_held_out(db, clips) -> None:
 
 def held_out_poses(body, config: HeldOutConfig):
     """(poses (P, B, 3) canonical, labels, sequence (T, B, 3), sequence root (T, 3)) from the held-out clips."""
-    from ..build.anchors import canonical_poses
+    from ..offline.anchors import canonical_poses
     from ..motion.retarget import load_cmu_motion
 
     reference = body.shape()
@@ -142,7 +144,7 @@ def test_set_key(db, config: HeldOutConfig, betas) -> str:
 def static_jobs(db, config: HeldOutConfig, poses, betas) -> list:
     """The drape jobs of the static cases, "test_<pose>_<shape>": each pose's first shape draped from the skinned
     garment (or from rest, with a ramp), the others warm-started from it."""
-    from ..build.jobs import DrapeJob
+    from ..offline.jobs import DrapeJob
 
     common = dict(garment=db.garment, garment_vertices=db.n_vertices, settings=config.drape)
     warm_settings = {**config.drape, **config.warm_drape}
@@ -162,8 +164,8 @@ def make_held_out_set(db, body, garment, config: HeldOutConfig, cache, workers: 
     pack: a file of packed drapes (DrapeStore.pack) of this test set: read first when it exists, rewritten as the
     drapes finish and after, so the ground truth can travel with the report instead of being simulated again.
     """
-    from ..build.builder import run_jobs
-    from ..build.jobs import DrapeStore
+    from ..offline.builder import run_jobs
+    from ..offline.jobs import DrapeStore
 
     if not config.clips:
         raise ValueError("no held-out clips given")

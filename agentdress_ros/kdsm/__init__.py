@@ -6,9 +6,10 @@ parameterization.txt), ROS-free.
 - `embedding`: barycentric embedding, the fixed embedding of Fig. 3 and the per-frame kernel that re-embeds
   u^{m_o} + d(theta) and skins the four parent tet vertices (Sec. 4).
 - `inverse`: inverse embedding of ground-truth drapes, Methods 1, 2 and the hybrid (Sec. 5).
-- `training`: training targets d(theta) from a sequence pack and the Table 1 analysis (offline).
-- `model`: the learned d(theta) (the `kdsm` pose model's training, stored as the database group pose_model/kdsm)
-  and the comparison with rest-frame offsets learned the same way (offline).
+- `surface`: the paper's baseline, offsets from the skinned body surface.
+
+The training of the `kdsm` pose model (targets d(theta) from a sequence pack, the Table 1 analysis, the learned
+d(theta) stored as the database group pose_model/kdsm) is offline code: offline.kdsm_training, offline.kdsm_model.
 """
 from .embedding import Embedding, KdsmPoser, embed, unembed
 from .mesh import KDSM, KDSMSettings, build_kdsm, load_kdsm, save_kdsm

@@ -5,7 +5,7 @@ triangle and barycentric weights). In any pose its position is stored as an offs
 two tangents and the interpolated normal (the paper's UVN coordinates). The tangents are UV-like: a smooth rest
 tangent field, carried into the pose by each triangle's own deformation (its edges), so neighbouring garment vertices
 share nearly the same frame, as texture-space directions would. A regressor learns the offsets as a function of the
-pose exactly as it learns the KDSM's plastic displacements (kdsm.model.compare).
+pose exactly as it learns the KDSM's plastic displacements (offline.kdsm_model.compare).
 
 Shapes: V garment vertices, N body vertices, F body faces.
 """

@@ -40,7 +40,7 @@ from std_msgs.msg import Float32MultiArray
 from ..scene import AgentSpec, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tiers
 from ..motion.joint_names import JOINT_NAMES
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
-from .garment_models import skin_binding
+from ..models.garment_models import skin_binding
 from .messages import JointStateReader, SerializedBones, SerializedCloud, make_mesh, make_skin, stamp_from_ns
 from .params import ParameterError, engine_for, validate
 

@@ -21,7 +21,7 @@ class InsideChecker:
     """submit() a snapshot from the executor thread; the thread checks the newest one; status() for ~/status."""
 
     def __init__(self, body, on_error):
-        from ..sim.posing import visible_body
+        from ..body import visible_body
 
         self.body, self.on_error = body, on_error
         self.ids, self.faces = visible_body(body)

@@ -51,7 +51,7 @@ from std_msgs.msg import Float32MultiArray, String
 from visualization_msgs.msg import Marker
 
 from ..garment import TEMPLATES
-from .garment_models import GarmentDatabaseError, skin_binding
+from ..models.garment_models import GarmentDatabaseError, skin_binding
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .inside_check import InsideChecker
 from .messages import (SerializedBones, make_marker, make_mesh, make_point_cloud, make_skin, set_cloud_vertices,

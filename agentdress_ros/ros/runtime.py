@@ -16,7 +16,7 @@ import numpy as np
 
 from ..body import REFERENCE_SHAPE
 from ..display.models import dress_for_display
-from .garment_models import GarmentDatabaseError, make_body_model, make_garment_model
+from ..models.garment_models import GarmentDatabaseError, make_body_model, make_garment_model
 
 __all__ = ["GarmentSpec", "ModelSet", "ModelWorker", "OutputGuard", "TickStats", "build_model_set", "inherit_topology",
            "scene_key"]

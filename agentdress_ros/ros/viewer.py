@@ -21,9 +21,9 @@ import json
 import re
 import sys
 
-from ..display.scene import DisplayScene
-from ..display.server import DisplayServer, NpmMissing, web_root
-from ..display.tls import ensure_certificate
+from ..viewer.state import DisplayScene
+from ..viewer.server import DisplayServer, NpmMissing, web_root
+from ..viewer.tls import ensure_certificate
 
 __all__ = ["RosBridge", "build_parser", "exposure_warning", "view_main"]
 

@@ -33,12 +33,12 @@ class GarmentSpec:
 
 class GarmentLibrary:
     """Shared, read-only garment data of a scene on one body. `get(spec)` returns the loaded model for a spec (an
-    EngineGarmentModel or SkinnedGarmentModel from ros.garment_models' makers), loading it on first use."""
+    EngineGarmentModel or SkinnedGarmentModel from models.garment_models' makers), loading it on first use."""
 
     def __init__(self, body, make_model=None, make_body=None):
         self.body = body
         if make_model is None or make_body is None:  # the node's garment models (no rclpy in that module)
-            from ..ros import garment_models
+            from ..models import garment_models
 
             make_model = make_model or garment_models.make_garment_model
             make_body = make_body or garment_models.make_body_model

@@ -6,13 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def visible_body(body):
-    """(vertex ids (N,), faces (G, 3) re-indexed onto them): the closed body surface a collider uses."""
-    ids = body.body_vertex_ids
-    remap = np.full(len(body.assets.template), -1)
-    remap[ids] = np.arange(len(ids))
-    return ids, remap[body.body_faces]
+from ..body.model import visible_body
 
 
 def posed_surfaces(body, garment, shape, rotvecs, root_translation=None):

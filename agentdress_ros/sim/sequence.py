@@ -110,7 +110,8 @@ def simulate_sequence(motion, garment, beta, folder, settings: SequenceSettings 
 
     from ..body import AnnyBody
     from .cloth import ClothSim
-    from .posing import posed_surfaces, ramp_poses, visible_body
+    from ..body import visible_body
+    from .posing import posed_surfaces, ramp_poses
 
     s = SequenceSettings() if settings is None else settings
     body = AnnyBody() if body is None else body

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 NEWTON_VERSION = "1.8.0"
 INSTALL_HINT = f"pip install newton=={NEWTON_VERSION} (the project's `build` extra)"
+#: DrapeSettings overrides of a drape warm-started from a finished one (the builder's and the held-out set's)
+WARM_DRAPE = {"velocity_retention": 0.75}
 
 
 def require_newton():

@@ -12,8 +12,8 @@ Data: a shaped pack (`agentdress settle --start shaped`): the training clips' po
 stored unposed with its own shape's bones. Target of each drape: the drape minus the engine's synthesis at the same
 shape and pose (the configuration `--engine`, the one the residual will correct), both unposed with that shape's
 bones - the frame in which the synthesis kernel adds the blended shape delta (Eq. 4), so adding the target to the
-delta moves the output onto the drape. Model: the regressor's PCA + MLP (build.regressor.fit), its inputs the pose's
-sensitivity dofs followed by the 6 phenotypes (build.santesteban.inputs, input_dofs). Validation holds out whole clips.
+delta moves the output onto the drape. Model: the regressor's PCA + MLP (offline.regressor.fit), its inputs the pose's
+sensitivity dofs followed by the 6 phenotypes (offline.santesteban.inputs, input_dofs). Validation holds out whole clips.
 Deterministic given the seed; stored atomically as shape_model/residual, with the engine configuration in its info.
 """
 from __future__ import annotations
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
     db = read_database(args.database)
     residual, info = train(db, AnnyBody(), load_sequence_pack(args.shaped), engine_config(args.engine), settings,
                            args.folds)
-    info = {**info, "shaped_pack": str(args.shaped)}  # the settings are in it (build.regressor.fit)
+    info = {**info, "shaped_pack": str(args.shaped)}  # the settings are in it (offline.regressor.fit)
     if not args.validate_only:
         before = Path(args.database).stat().st_size
         residual = replace(residual, info=info)

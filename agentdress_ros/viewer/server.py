@@ -33,7 +33,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Response
 
-from .scene import DisplayScene
+from .state import DisplayScene
 
 __all__ = ["DisplayServer", "NpmMissing", "web_root"]
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..body.assets import PHENOTYPE_NAMES
-from ..body.shape import REFERENCE_SHAPE
+from .assets import PHENOTYPE_NAMES
+from .shape import REFERENCE_SHAPE
 
 TRAINING_PHENOTYPES = ("gender", "weight", "height", "muscle")
 #: Offsets from beta0 of the four levels; gender spans the whole male-female axis.

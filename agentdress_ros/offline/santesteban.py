@@ -12,8 +12,8 @@ U(beta, theta).
 - Wrinkle regressor R_L(beta, theta) (their Sec. 4.2, the static variant): U - T - R_G(beta) of the anchors on all
   17 shapes (repeated `anchor_copies` times: a few hundred beside thousands of frames) and of the pack's frames at
   beta0, an MLP from the pose's sensitivity dofs and the phenotypes to the PCA coefficients (the `regressor`'s
-  machinery, build.regressor.fit).
-Deterministic given the settings' seed; written into the database atomically (build.regressor.store_in_database).
+  machinery, offline.regressor.fit).
+Deterministic given the settings' seed; written into the database atomically (offline.regressor.store_in_database).
 """
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ def phenotype_dofs(db) -> np.ndarray:
 
 def input_dofs(db, features: str) -> np.ndarray:
     """(I,) what an MLP of pose and shape reads from an input vector of `inputs`: the pose dofs of `features`
-    (build.regressor.pose_dofs), then the 6 phenotypes."""
+    (offline.regressor.pose_dofs), then the 6 phenotypes."""
     return np.concatenate([pose_dofs(db, features), phenotype_dofs(db)]).astype(np.int32)
 
 
@@ -97,7 +97,7 @@ def train(db, body, drapes_path, pack: dict, settings: SantestebanSettings, prog
     from tqdm import tqdm
 
     from ..engine.pose_models import canonical_poses
-    from ..kdsm.training import spread_frames
+    from ..offline.kdsm_training import spread_frames
 
     bar = tqdm(total=3, desc="santesteban", unit="step", disable=not progress)
     unposed = unposed_anchor_drapes(db, body, drapes_path)  # (A, S, V, 3)

@@ -24,15 +24,16 @@ import numpy as np
 
 from ..body import REFERENCE_SHAPE, AnnyBody
 from ..body.assets import PHENOTYPE_NAMES
+from ..body.training_shapes import shape_range, shape_scale, training_shapes
 from ..engine.database import Database, write_database
 from ..garment import REGION_NAMES, make_garment
 from ..garment.binding import SurfaceBinding
 from ..garment.templates import EASE, SURFACE
+from ..sim.settings import WARM_DRAPE
 from .anchors import canonical_poses, coverage, farthest_poses, uniform_anchors, weighted_kmeans_anchors
 from .jobs import DrapeJob, DrapeStore, key_changes, posed_scene, read_drape_pack, run_drape_job
 from .sensitivity import joint_weights, region_dof_influence, vertex_sensitivity
 from .shape_model import fit_shape_model
-from .shapes import shape_range, shape_scale, training_shapes
 
 
 @dataclass
@@ -58,7 +59,7 @@ class BuildConfig:
     # ... and on top of those for drapes warm-started from another drape. Such a start is already near equilibrium,
     # so more drag settles it in 33 frames instead of 82 (2k-vertex T-shirt, shape variant) and moves the result
     # 1.1 mm on average, less than the 2.8 mm by which the two warm starts' equilibria differ.
-    warm_drape: dict = field(default_factory=lambda: {"velocity_retention": 0.75})
+    warm_drape: dict = field(default_factory=lambda: dict(WARM_DRAPE))
     seed: int = 0
 
     def plan_key(self) -> str:

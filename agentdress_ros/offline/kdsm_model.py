@@ -1,38 +1,34 @@
 """The `kdsm` pose model's training: a learned d(theta) in the KDSM (paper Sec. 6), offline, with scikit-learn.
 
-    python -m agentdress_ros.kdsm.model --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz \
-        --frames 2000 --targets out/tshirt_kdsm_targets.npz --out out/tshirt_kdsm.h5 [--compare]
-
 The KDSM is built at beta0 (2.5 cm lattice, a shell as thick as the farthest drape of the pack from the posed body
 plus a margin); `frames` pack frames spread over the training clips (and, as for the `regressor`, the database's
-beta0 drapes) are inverse-embedded (training.training_targets, about 0.2 s a frame) into plastic displacements d;
-the Seed 2 regressor's machinery (build.regressor.fit: PCA of d, an MLP from the same pose dofs to the PCA
+beta0 drapes) are inverse-embedded (kdsm_training.training_targets, about 0.2 s a frame) into plastic displacements
+d; the Seed 2 regressor's machinery (offline.regressor.fit: PCA of d, an MLP from the same pose dofs to the PCA
 coefficients, the same settings) learns d(theta). The KDSM and the learned model are written into a copy of the
-database (`--out`, group pose_model/kdsm, engine.database.KdsmModel); the engine's `kdsm` pose model
+database (group pose_model/kdsm, engine.database.KdsmModel); the engine's `kdsm` pose model
 (engine.pose_models.KdsmPoseModel) predicts d, re-embeds rest + d and skins the parent tets (world positions).
 
-`--compare` runs the paper's comparison on the same frames, the same clip folds and the same network: (a) d learned
-in the KDSM against (b) the garment's rest-frame offsets learned from its own skinning (what the `regressor` learns)
+`compare` is the paper's comparison on the same frames, the same clip folds and the same network: (a) d learned in
+the KDSM against (b) the garment's rest-frame offsets learned from its own skinning (what the `regressor` learns)
 and (c) offsets from the skinned body surface (the paper's baseline, Jin et al.; kdsm.surface), all scored as posed
-world positions against the held-out clips' drapes (and, when given, `--beta0-pack`: the evaluation's held-out poses
-draped at beta0, evaluate.beta0).
+world positions against the held-out clips' drapes. The command that trains, stores and compares (also on the
+evaluation's held-out poses) is evaluate.kdsm_comparison.
 """
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..body.kinematics import forward_kinematics, linear_blend_skinning
-from ..build.regressor import (RegressorSettings, TrainingData, add_network_arguments, clip_folds, fit, kept_frames,
-                                model_inputs, network_settings, pack_data, predict, restored)
-from .embedding import KdsmPoser
-from .mesh import KDSM, KDSMSettings, build_kdsm
-from .training import (GarmentFrames, TargetSettings, drape_clearance, pack_frames, spread_frames,
-                       training_targets)
+from ..kdsm.embedding import KdsmPoser
+from ..kdsm.mesh import KDSM, KDSMSettings, build_kdsm
+from .kdsm_training import (GarmentFrames, TargetSettings, drape_clearance, pack_frames, spread_frames,
+                            training_targets)
+from .regressor import RegressorSettings, TrainingData, clip_folds, fit, kept_frames, pack_data, predict, restored
 
 
 @dataclass(frozen=True)
@@ -137,7 +133,7 @@ def training_rows(targets: KdsmTargets, rows, copies: int) -> np.ndarray:
 
 
 def fit_on_rows(targets: KdsmTargets, values, rows, dofs, settings: RegressorSettings):
-    """The regressor (engine.database.Regressor, build.regressor.fit) of per-frame values (F, V, 3) of `targets`
+    """The regressor (engine.database.Regressor, offline.regressor.fit) of per-frame values (F, V, 3) of `targets`
     - d, the rest-frame garment or the body-surface offsets - trained on `rows` (and the database's drapes
     settings.examples times): every model of the comparison learns through this one."""
     train = training_rows(targets, rows, settings.examples)
@@ -159,8 +155,8 @@ class SurfacePoser:
     at rest to its closest body point among its own regions (as Method 2 of the inverse embedding)."""
 
     def __init__(self, db, body, shape):
-        from .inverse import region_groups
-        from .surface import anchor_garment
+        from ..kdsm.inverse import region_groups
+        from ..kdsm.surface import anchor_garment
 
         self.body, self.shape, self.faces = body, shape, body.body_faces
         face_groups, point_groups = region_groups(body, db.skin_indices, db.skin_weights)
@@ -170,7 +166,7 @@ class SurfacePoser:
 
     def frames(self, transforms):
         """Surface points (F, V, 3) and frames (F, V, 3, 3) of the anchors at bone transforms (F, B, 3, 4)."""
-        from .surface import surface_frames
+        from ..kdsm.surface import surface_frames
 
         parts = [surface_frames(self.anchors, self.body.posed_vertices(self.shape, np.ascontiguousarray(t)),
                                 self.faces) for t in transforms]
@@ -179,7 +175,7 @@ class SurfacePoser:
     def of_targets(self, targets: KdsmTargets):
         """(origin, frames, offsets (F, V, 3) of the drapes) at every frame of `targets`: computed once for the
         comparison and the test set, which both train on the same targets."""
-        from .surface import to_surface
+        from ..kdsm.surface import to_surface
 
         if self._targets is None or self._targets[0] is not targets:
             origin, frames = self.frames(targets.transforms)
@@ -216,7 +212,7 @@ def _errors(posed, drapes) -> np.ndarray:
 
 
 def held_out_folds(groups, folds: int, split: str = "clips", seed: int = 0) -> list[np.ndarray]:
-    """Row indices (of groups (F,) clip names) of each fold's held-out set: whole clips (build.regressor.clip_folds,
+    """Row indices (of groups (F,) clip names) of each fold's held-out set: whole clips (offline.regressor.clip_folds,
     our default: a test pose's clip is never seen) or, with split="frames", frames dealt at random (the paper's
     setting: neighbouring frames of the same clip sit in training)."""
     if split == "frames":
@@ -233,7 +229,7 @@ def compare(kdsm: KDSM, db, targets: KdsmTargets, dofs, settings: RegressorSetti
     through its own map (the KDSM's inverse embedding error; the skinned offsets are exact), each target projected on
     its model's PCA, no pose dependence (the rest garment skinned; the fixed embedding, d = 0). With `surface`, the
     paper's own baseline as well: the same regressor on offsets from the skinned body surface (kdsm.surface)."""
-    from .surface import from_surface
+    from ..kdsm.surface import from_surface
 
     rest = np.asarray(db.rest, dtype=np.float64)
     skin_i, skin_w = db.skin_indices, db.skin_weights
@@ -300,7 +296,7 @@ def test_set_errors(kdsm: KDSM, db, body, shape, targets: KdsmTargets, dofs, set
     drapes) and scored on held-out poses (P, B, 3) draped at beta0 (P, V, 3) (evaluate.beta0): mean vertex distance
     (cm), all and per pose."""
     from ..engine.pose_models import canonical_poses
-    from .surface import from_surface
+    from ..kdsm.surface import from_surface
 
     rows = np.flatnonzero(targets.groups != "examples")
     poses = canonical_poses(poses)
@@ -353,8 +349,8 @@ def frame_cost(db_path, body, poses, repeats: int = 5) -> dict:
 
 def store_kdsm_model(source, path, model) -> Path:
     """A copy of the database `source` with the KDSM group (engine.database.KdsmModel) written into it at `path`
-    (atomically: build.regressor.store_in_database)."""
-    from ..build.regressor import store_in_database
+    (atomically: offline.regressor.store_in_database)."""
+    from .regressor import store_in_database
     from ..engine.database import write_kdsm_model
 
     return store_in_database(path, lambda h5: write_kdsm_model(h5, model), source=source)
@@ -366,125 +362,3 @@ def targets_key(db_path, pack_path, settings: KdsmModelSettings, examples: bool 
             "margin": settings.margin, "examples": examples, "max_offset": max_offset,
             **({"smoothing": settings.smoothing} if settings.smoothing else {}),
             **({"guess": settings.guess} if settings.guess != "surface" else {})}
-
-
-def main(argv=None) -> int:
-    import argparse
-
-    from ..body import AnnyBody
-    from ..build.sequences import load_sequence_pack
-    from ..engine.database import KdsmModel, read_database
-    from .mesh import load_kdsm, save_kdsm
-
-    parser = argparse.ArgumentParser(prog="python -m agentdress_ros.kdsm.model", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--database", required=True)
-    parser.add_argument("--pack", required=True)
-    parser.add_argument("--out", required=True, help="database copy to write with the pose_model/kdsm group")
-    defaults = KdsmModelSettings()
-    parser.add_argument("--frames", type=int, default=defaults.frames)
-    parser.add_argument("--spacing", type=float, default=defaults.spacing)
-    parser.add_argument("--margin", type=float, default=defaults.margin)
-    parser.add_argument("--smoothing", type=int, default=defaults.smoothing,
-                        help="Jacobi iterations of skin-weight diffusion in the air away from the body")
-    parser.add_argument("--guess", choices=("surface", "unposed"), default=defaults.guess, help="the hybrid "
-                        "inverse embedding's guess among candidate parents: Method 2's offset from the body surface "
-                        "(the paper's) or the drape unposed with the garment's own skinning")
-    parser.add_argument("--targets", default=None, help=".npz cache of the inverse-embedded frames (and the KDSM "
-                        "beside it, <name>_mesh.npz): reused when made from the same data and settings")
-    parser.add_argument("--folds", type=int, default=3, help="folds of the comparison")
-    parser.add_argument("--split", choices=("clips", "frames"), default="clips", help="hold out whole clips (a "
-                        "test pose's clip never seen) or frames at random (the paper's setting)")
-    parser.add_argument("--compare", action="store_true", help="the comparison with rest-frame offsets (held-out "
-                        "clips of the pack; with --beta0-pack also the evaluation's held-out poses at beta0)")
-    parser.add_argument("--beta0-pack", default=None, help="packed drapes of the held-out poses at beta0 "
-                        "(docs/eval/ground_truth_beta0.npz; a copy is used, the file is left alone)")
-    parser.add_argument("--beta0-test-set", choices=("v1", "v2"), default="v1",
-                        help="the held-out set whose poses --beta0-pack holds (v2: docs/eval/v2/<garment>/"
-                        "ground_truth_beta0.npz, 40 poses)")
-    parser.add_argument("--report", default=None, help="write the report (JSON) here too")
-    add_network_arguments(parser, defaults.regressor, parts=True)  # --parts: every model of the comparison so
-    args = parser.parse_args(argv)
-    settings = replace(defaults, frames=args.frames, spacing=args.spacing, margin=args.margin,
-                       smoothing=args.smoothing, guess=args.guess, regressor=network_settings(args))
-    reg_settings = settings.regressor
-
-    started = time.perf_counter()
-    db = read_database(args.database)
-    body = AnnyBody()
-    shape = body.shape(db.beta0)
-    pack = load_sequence_pack(args.pack)
-    key = targets_key(args.database, args.pack, settings, max_offset=reg_settings.max_offset)
-    mesh_path = None if args.targets is None else Path(args.targets).with_name(Path(args.targets).stem + "_mesh.npz")
-    targets = None if args.targets is None else load_targets(args.targets, key)
-    if targets is not None and mesh_path.is_file():
-        kdsm = load_kdsm(mesh_path)
-    else:
-        kdsm = database_kdsm(db, body, shape, pack, settings)
-        targets = kdsm_targets(kdsm, db, body, shape, pack, settings.frames, settings.regressor.max_offset,
-                               progress=True, guess=settings.guess)
-        if args.targets is not None:
-            save_kdsm(mesh_path, kdsm)
-            save_targets(args.targets, targets, key)
-    target_seconds = time.perf_counter() - started
-    dofs = model_inputs(db, reg_settings)
-    report = {"kdsm": kdsm.info, "frames": int((targets.groups != "examples").sum()),
-              "clips": int(len(np.unique(targets.groups[targets.groups != "examples"]))),
-              "example_drapes": int((targets.groups == "examples").sum()), "targets_seconds": target_seconds}
-    rows = np.flatnonzero(targets.groups != "examples")
-    started = time.perf_counter()
-    regressor = fit_displacements(targets, rows, dofs, reg_settings)
-    report["fit_seconds"] = time.perf_counter() - started
-    info = {"settings": json.loads(json.dumps(asdict(settings))), "pack": str(args.pack),
-            "frames": report["frames"], "clips": report["clips"], "example_drapes": report["example_drapes"]}
-    regressor = replace(regressor, info={**regressor.info, **info})
-    model = KdsmModel(kdsm=kdsm, rest=np.asarray(db.rest, dtype=np.float32), regressor=regressor, info=info)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    store_kdsm_model(args.database, args.out, model)
-    report["out"] = str(args.out)
-    report["bytes"] = {"database": Path(args.database).stat().st_size, "out": Path(args.out).stat().st_size}
-    if args.compare:
-        surface = SurfacePoser(db, body, shape)
-        report["clip_folds" if args.split == "clips" else "frame_folds"] = compare(
-            kdsm, db, targets, dofs, reg_settings, args.folds, surface, args.split)
-        if args.beta0_pack:
-            report["test_set_beta0"] = beta0_comparison(kdsm, db, body, shape, targets, dofs, reg_settings,
-                                                        args.beta0_pack, args.beta0_test_set, surface)
-        from ..evaluate.testset import HeldOutConfig, default_clip_paths, held_out_poses
-
-        _, _, sequence, _ = held_out_poses(body, HeldOutConfig(clips=default_clip_paths()[:1]))
-        report["ms_per_frame"] = frame_cost(args.out, body, sequence)
-        report["ms_per_frame_poses"] = int(len(sequence))
-    text = json.dumps(report, indent=1)
-    if args.report:
-        Path(args.report).write_text(text + "\n")
-    print(text)
-    return 0
-
-
-def beta0_comparison(kdsm, db, body, shape, targets, dofs, settings, pack, test_set: str = "v1",
-                     surface: SurfacePoser | None = None) -> dict:
-    """test_set_errors on the evaluation's held-out poses at beta0 (evaluate.beta0, from a copy of the packed
-    drapes: nothing is draped when the pack holds them all) of held-out set `test_set` ("v1" or "v2")."""
-    import shutil
-    import tempfile
-
-    from ..evaluate.beta0 import held_out_beta0
-    from ..evaluate.testset import HeldOutConfig, default_clip_paths, held_out_v2
-    from ..garment import make_garment
-
-    garment = make_garment(db.garment, body, db.n_vertices)
-    config = held_out_v2() if test_set == "v2" else HeldOutConfig(clips=default_clip_paths())
-    with tempfile.TemporaryDirectory() as folder:
-        copy = Path(folder) / "ground_truth_beta0.npz"
-        shutil.copyfile(pack, copy)
-        drapes, poses, labels = held_out_beta0(db, body, garment, config, Path(folder) / "cache", workers=0,
-                                               progress=False, pack=copy)
-    out = test_set_errors(kdsm, db, body, shape, targets, dofs, settings, poses, drapes, surface)
-    out.pop("models")
-    out["labels"] = labels
-    return out
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

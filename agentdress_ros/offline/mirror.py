@@ -72,7 +72,7 @@ def mirrored_positions(positions: np.ndarray, corners: np.ndarray, weights: np.n
 
 @dataclass
 class Mirror:
-    """The mirror images of a garment's training data at beta0 (build.regressor.TrainingData)."""
+    """The mirror images of a garment's training data at beta0 (offline.regressor.TrainingData)."""
 
     twins: np.ndarray  # (B,) int
     corners: np.ndarray  # (V, 3) int

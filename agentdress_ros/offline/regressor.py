@@ -2,7 +2,7 @@
 
     agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 
-Training data: the frames of a sequence pack (build.sequences: each frame's garment unposed to the rest frame with
+Training data: the frames of a sequence pack (offline.sequences: each frame's garment unposed to the rest frame with
 beta0's bones, their Eq. 5) and, optionally, the database's own beta0 drapes (the anchors' and the extra pose-model
 examples), unposed the same way. Model: PCA of the rest-frame garment (G components), an MLP from the pose's dofs
 (standardised) to the PCA coefficients. Written into the database as the group pose_model/regressor
@@ -49,13 +49,13 @@ class RegressorSettings:
     max_offset: float = 0.5  # metres: frames in which a vertex strays further than this from its skinned place (in
     # the rest frame) are left out - a simulation that lost the garment (trousers off the hips in the dance clips),
     # not a drape to learn
-    settled_copies: int = 0  # copies of the settled static drapes (build.settled) among the frames, when a settled
+    settled_copies: int = 0  # copies of the settled static drapes (offline.settled) among the frames, when a settled
     # pack is given (0: none given)
     dynamic: bool = True  # train on the sequence pack's dynamic frames; False: on the static drapes only (the settled
     # pack's copies and the database's beta0 drapes), the held-out set's kind of cloth
     ensemble: int = 1  # MLPs trained from seeds seed, seed+1, ... on the same data and stored merged into one wider MLP
     # whose output is their mean (exact; README "Drapes from rest along the training clips": 5 beat 1 by 2-3 %)
-    mirror: bool = False  # train on the frames' left-right mirror images too (build.mirror): twice the poses
+    mirror: bool = False  # train on the frames' left-right mirror images too (offline.mirror): twice the poses
     parts: bool = False  # one MLP and PCA per garment region (region_parts), on that region's own pose dofs, blended
     # by the region weights: a pose the training clips never combined (this arm up, that leg out) is then made of
     # parts each of which has seen its own (README "Region parts")
@@ -140,7 +140,7 @@ def example_data(db) -> TrainingData:
 
 
 def data_mirror(db, settings: RegressorSettings):
-    """The build.mirror.Mirror of the database's garment when settings.mirror, else None."""
+    """The offline.mirror.Mirror of the database's garment when settings.mirror, else None."""
     if not settings.mirror:
         return None
     from ..body import AnnyBody
@@ -186,7 +186,7 @@ def settled_paths(settled) -> list:
 
 
 def settled_data(settled, db, max_offset: float | None) -> tuple:
-    """(static drapes of one or several settled packs (build.settled) as TrainingData, drapes left out by
+    """(static drapes of one or several settled packs (offline.settled) as TrainingData, drapes left out by
     max_offset)."""
     parts, dropped = [], 0
     for path in settled_paths(settled):
@@ -363,7 +363,7 @@ def clip_folds(clips, folds: int) -> list[list[str]]:
 
 
 def with_mirror(data: TrainingData, mirror=None) -> TrainingData:
-    """data and, with a build.mirror.Mirror, its mirror images."""
+    """data and, with an offline.mirror.Mirror, its mirror images."""
     return join(data, mirror(data)) if mirror is not None else data
 
 
@@ -414,7 +414,7 @@ def validate_example_copies(frames: TrainingData, examples: TrainingData, dofs, 
 
 def validate_settled_copies(frames: TrainingData | None, settled: TrainingData, extra: TrainingData | None, dofs,
                             settings: RegressorSettings, copies, folds: int = 3, mirror=None) -> list[dict]:
-    """How many copies of a settled pack's static drapes (build.settled) to train on: for each count, the mean
+    """How many copies of a settled pack's static drapes (offline.settled) to train on: for each count, the mean
     rest-frame vertex error (m) on the static drapes of held-out clips. Each fold holds out whole clips of the
     settled pack and trains on the other clips' pack frames (none when `frames` is None: static drapes only) and
     static drapes (`count` copies) plus `extra` (the database's beta0 drapes): the held-out set's kind of cloth, in
@@ -468,7 +468,7 @@ def training_key(pack_path, db, settings: RegressorSettings, settled_path=None) 
 
 
 def training_frames(pack_path, db, settings: RegressorSettings, settled_path=None) -> tuple:
-    """(frames, frames left out): the pack's frames and, with settled packs (build.settled) and
+    """(frames, frames left out): the pack's frames and, with settled packs (offline.settled) and
     settings.settled_copies, that many copies of its static drapes, each under its source clip's name (so a clip
     held out in validation takes its settled drapes with it). Without settings.dynamic, the static drapes only."""
     static, static_dropped = None, 0

@@ -8,11 +8,11 @@ dense training frames are dynamic: the cloth swings and lags. A pose model train
 beside 9,000 moving ones. This turns `frames` of the dynamic frames (spread evenly over the pack, so over its
 training clips) into static drapes: the frame's garment, in the frame's pose at beta0, settles with the body held
 still (about 100 frames, 10 s at 1,200 vertices; nothing is lifted out of the body first, the cloth starts where
-the dynamic simulation left it). The result is a pack of the same format as the sequences' (build.sequences), one
+the dynamic simulation left it). The result is a pack of the same format as the sequences' (offline.sequences), one
 "frame" per drape with its source clip and frame and zero speeds, which `agentdress regressor --pack` reads beside
 the sequences.
 
-Each drape is one build job (build.jobs, `warm_ramp_frames` 1: the start is the frame itself), run on the build's
+Each drape is one build job (offline.jobs, `warm_ramp_frames` 1: the start is the frame itself), run on the build's
 Dask machinery and written atomically under `<out>.work/`, so a killed run loses at most the drapes in flight.
 
 `--start rest` drapes the same poses the way the anchors and the held-out ground truth are draped instead: the
@@ -46,7 +46,7 @@ def settle_jobs(pack: dict, db, body, frames, drape: dict | None = None) -> tupl
     """(jobs, starts): one DrapeJob per pack frame index in `frames`, warm-started from the frame's own garment
     (starts: {"dynamic_<frame>_00": posed garment (V, 3)}, the pack's rest-frame offsets skinned at beta0).
     drape: DrapeSettings overrides on top of SETTLE_DRAPE."""
-    from ..kdsm.training import pack_frames
+    from ..offline.kdsm_training import pack_frames
     from .jobs import DrapeJob
 
     shape = body.shape(db.beta0)
@@ -78,16 +78,16 @@ def rest_start_jobs(pack: dict, db, frames, drape: dict | None = None) -> list:
 
 
 def shaped_jobs(db, rest_jobs: list, seed: int = 0, margin: float = SHAPED_MARGIN, drape: dict | None = None) -> list:
-    """One DrapeJob per drape from rest in `rest_jobs`: the same pose at a random body shape (build.shapes.
+    """One DrapeJob per drape from rest in `rest_jobs`: the same pose at a random body shape (body.training_shapes.
     uniform_shapes over the database's training range widened by `margin`, seeded), warm-started from that drape
     the way the held-out set's other shapes start from its first (the held-out set's warm settings, plus the
     DrapeSettings overrides `drape`)."""
-    from ..evaluate.testset import HeldOutConfig
+    from ..body.training_shapes import uniform_shapes
+    from ..sim.settings import WARM_DRAPE
     from .jobs import DrapeJob
-    from .shapes import uniform_shapes
 
     betas = uniform_shapes(db.beta0, db.beta_range, len(rest_jobs), np.random.default_rng(seed), margin)
-    warm = {**dict(db.provenance.get("config", {}).get("drape", {})), **HeldOutConfig().warm_drape, **(drape or {})}
+    warm = {**dict(db.provenance.get("config", {}).get("drape", {})), **WARM_DRAPE, **(drape or {})}
     return [DrapeJob("shaped", job.index, 1, job.pose, beta, db.garment, db.n_vertices, warm, warm_key=job.key,
                      warm_pose=job.pose, warm_beta=job.beta) for job, beta in zip(rest_jobs, betas)]
 
@@ -171,7 +171,7 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
     random shape drawn with `seed`, warm-started from it)."""
     from ..body import AnnyBody
     from ..engine.database import read_database
-    from ..kdsm.training import spread_frames
+    from ..offline.kdsm_training import spread_frames
     from .builder import run_jobs
     from .jobs import DrapeStore
     from .regressor import settled_paths

@@ -1,10 +1,10 @@
 """Training targets d(theta) from a sequence pack, and the dataset analysis of the paper's Table 1.
 
-    python -m agentdress_ros.kdsm.training --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz \
+    python -m agentdress_ros.offline.kdsm_training --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz \
         --frames 200 [--spacing 0.025] [--save out/tshirt_kdsm.npz]
 
 A pack frame's posed drape (root translation zero) is its rest-frame garment rest + offsets[f] skinned with the
-garment's weights and the frame's beta0 transforms: the inverse of how build.sequences unposed it. Each method of
+garment's weights and the frame's beta0 transforms: the inverse of how offline.sequences unposed it. Each method of
 Sec. 5 turns the drape into material positions u^m (d = u^m - u^{m_o}); the table pushes every d through the
 run-time map (re-embed at rest, skin the parent tet; skinning outside the shell) and compares with the drape.
 """
@@ -19,10 +19,10 @@ import numpy as np
 
 from ..body.kinematics import forward_kinematics, linear_blend_skinning
 from ..garment.binding import mesh_edges
-from .embedding import KdsmPoser
-from .inverse import (FALLBACK, STATUS_NAMES, candidate_parents, graph_laplacian, hybrid_material, method1_material,
-                      region_groups, surface_offset_guess)
-from .mesh import KDSM, KDSMSettings, build_kdsm, save_kdsm
+from ..kdsm.embedding import KdsmPoser
+from ..kdsm.inverse import (FALLBACK, STATUS_NAMES, candidate_parents, graph_laplacian, hybrid_material,
+                            method1_material, region_groups, surface_offset_guess)
+from ..kdsm.mesh import KDSM, KDSMSettings, build_kdsm, save_kdsm
 
 #: fixed: the rest embedding (d = 0, Fig. 3); method1/method2/hybrid_paper: Sec. 5 as written (1 cm);
 #: hybrid: the training targets, 1 cm then the relaxed thresholds of TargetSettings.
@@ -208,10 +208,10 @@ def main(argv=None) -> int:
     import argparse
 
     from ..body import AnnyBody
-    from ..build.sequences import load_sequence_pack
+    from ..offline.sequences import load_sequence_pack
     from ..engine.database import read_database
 
-    parser = argparse.ArgumentParser(prog="python -m agentdress_ros.kdsm.training", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m agentdress_ros.offline.kdsm_training", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--database", required=True)
     parser.add_argument("--pack", required=True)

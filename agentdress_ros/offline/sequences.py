@@ -107,9 +107,10 @@ def pack_sequences(root, garment_name: str, garment_vertices: int, out, componen
     the pack's size, the PCA reconstruction error in the rest frame (mean and max vertex distance, metres), and the
     garment vertices inside the body on every `inside_every`-th frame (mean per frame: all, in the body's
     self-overlap, truly inside; garment.inside)."""
+    from ..body import visible_body
     from ..body.model import REFERENCE_SHAPE
     from ..garment.inside import inside_report
-    from ..sim.posing import posed_surfaces, visible_body
+    from ..sim.posing import posed_surfaces
     from ..sim.sequence import load_sequence
     from .jobs import _body_and_garment
 
