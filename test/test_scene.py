@@ -12,10 +12,11 @@ import pytest
 
 from agentdress_ros.scene import (AgentSpec, Candidate, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer,
                                   parse_tier, parse_tiers, schedule)
+from agentdress_ros.engine.config import EngineKnobs
 from agentdress_ros.scene.lod import DEFAULT_TIERS, quaternion_forward
 
 DATA = Path(__file__).resolve().parents[1] / "data"
-EXAMPLES = (("pose_model", "examples"),)
+EXAMPLES = EngineKnobs.of(pose_model="examples")
 GARMENTS = (GarmentSpec("tshirt", database=str(DATA / "tshirt_default.h5"), engine=EXAMPLES),
             GarmentSpec("trousers", database=str(DATA / "trousers_default.h5"), engine=EXAMPLES))
 BETA0 = (0.5, 2.0 / 3.0, 0.5, 0.5, 0.5, 0.5)
@@ -26,7 +27,8 @@ LOOK_X = (0.0, 0.0, 0.0, 1.0)  # identity orientation: looking along +x
 def test_tier_lines_parse_and_print_back():
     tiers = DEFAULT_TIERS
     assert [t.name for t in tiers] == ["near", "mid", "far", "distant"]
-    assert tiers[1].engine == (("neighbors", 2), ("penetration", False), ("pose_model", "examples"), ("projection", 0))
+    assert tiers[1].engine.as_dict() == {"neighbors": 2, "penetration": False, "pose_model": "examples",
+                                         "projection": 0}
     assert tiers[1].kind == "synthesis"
     assert tiers[2].kind == "skinned" and math.isinf(tiers[3].max_distance) and tiers[3].every == 6
     assert parse_tiers([t.text() for t in tiers]) == tiers

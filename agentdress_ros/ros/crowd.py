@@ -42,7 +42,8 @@ from ..motion.joint_names import JOINT_NAMES
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .garment_models import skin_binding
 from .messages import JointStateReader, SerializedBones, SerializedCloud, make_mesh, make_skin, stamp_from_ns
-from .params import ParameterError, engine_for, validate
+from ..engine.config import EngineKnobs
+from .params import ParameterError, validate
 
 # rclpy gives every publisher and subscription two QoS event handlers (incompatible QoS, incompatible type), and its
 # executor rebuilds the wait set from every handler on each callback, matching handlers by list search: with six
@@ -184,7 +185,8 @@ class Crowd:
         """The agent's spec: the node's parameters with the agent's overrides."""
         config = {**{k: self.config[k] for k in AGENT_KEYS if k in self.config}, **self.overrides.get(name, {})}
         garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g),
-                                     engine_for(config["engine"], g) if config["garment_databases"].get(g) else ())
+                                     config["engine"].for_garment(g) if config["garment_databases"].get(g)
+                                     else EngineKnobs())
                          for g in config["garments"])
         beta = tuple(float(b) for b in check_shape_values(config["shape"]).beta)
         return AgentSpec(name, garments, beta, config["frame_id"], config.get("origin", (0.0, 0.0, 0.0)),

@@ -57,7 +57,7 @@ from .inside_check import InsideChecker
 from .messages import (SerializedBones, make_marker, make_mesh, make_point_cloud, make_skin, set_cloud_vertices,
                        stamp_from_ns)
 from .params import (GARMENT_MODELS, PARAMETERS, ParameterError, check_garment_config, database_file_problem,
-                     engine_for, validate)
+                     validate)
 from .runtime import (GarmentSpec, ModelSet, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set,
                       scene_key)
 from .spin import spin_until_shutdown
@@ -195,7 +195,7 @@ class AgentDressNode(Node):
     def _scene(self, config=None, beta=None) -> SceneSpec:
         config = config or self.config
         garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g),
-                                     engine_for(config["engine"], g),
+                                     config["engine"].for_garment(g),
                                      config["garment_models"].get(g, GARMENT_MODELS[0]))
                          for g in config["garments"])
         if beta is None:
