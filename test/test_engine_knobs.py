@@ -105,3 +105,21 @@ def test_every_parameter_carries_its_check_and_its_default_passes_it():
         assert name in str(info.value), (name, str(info.value))
     with pytest.raises(ParameterError, match="unknown parameter"):
         validate("speed", 1)
+
+
+def test_a_crowd_agents_overrides_take_their_parameters_checks():
+    from agentdress_ros.ros.crowd import AGENT_CHECKS, agent_overrides
+
+    for key, check in AGENT_CHECKS.items():
+        if key in PARAMETERS:
+            assert check is PARAMETERS[key].check, key
+    assert agent_overrides({"bob.origin": [3, 0, 0], "bob.engine": ["neighbors=2"], "amy.extra_cost_ms": 2}) == {
+        "amy": {"extra_cost_ms": 2.0}, "bob": {"origin": (3.0, 0.0, 0.0), "engine": GarmentEngines(
+            EngineKnobs.of(neighbors=2))}}
+    for values, words in (({"bob.origin": [1, 2]}, "agent.bob.origin must be three"),
+                          ({"bob.engine": ["neighbors=0"]}, "agent.bob.engine: neighbors must be >= 1"),
+                          ({"bob.extra_cost_ms": -1}, "agent.bob.extra_cost_ms must be in [0, 1000]"),
+                          ({"bob.colour": "red"}, "unknown per-agent parameter 'colour'")):
+        with pytest.raises(ParameterError) as info:
+            agent_overrides(values)
+        assert words in str(info.value), str(info.value)

@@ -221,6 +221,23 @@ def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
     assert not np.allclose(published.frames["a"]["tshirt"], published.frames["b"]["tshirt"], atol=1e-2)
 
 
+def test_an_agent_runs_the_garment_model_its_spec_names(scene, body, walk):
+    """garment_models in a crowd: a garment whose spec names Santesteban et al.'s system dresses, at every tier,
+    exactly as the single agent's model of that name (the same maker, the same shape)."""
+    from agentdress_ros.ros.garment_models import make_garment_model
+
+    beta = (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)
+    spec = GarmentSpec("tshirt", database=str(DATA / "tshirt_default.h5"), model="santesteban")
+    agent = scene.build_agent(AgentSpec("s", (spec,), beta))
+    scene.install(agent)
+    single = make_garment_model("tshirt", DATA / "tshirt_default.h5", None, body, beta, model="santesteban")
+    assert agent.garments["tshirt"].kind == single.kind == "santesteban"
+    for level, frame in enumerate((2, 9, 14, 20)):  # one frame per tier
+        dressed = agent.garments["tshirt"].dress(level, walk.rotvecs[frame], walk.root_translation[frame])
+        expected = single.synthesize(walk.rotvecs[frame], walk.root_translation[frame])
+        np.testing.assert_array_equal(dressed, np.asarray(expected, dtype=np.float32))
+
+
 def test_a_body_streamed_as_bones_is_posed_without_vertices(scene, walk):
     """bones_only (set by the crowd node while nobody takes the body's points, only its bones): the body's frame is
     None, its bone transforms are those of the full frame, and the garments are the same as with the body's
@@ -390,6 +407,19 @@ def test_agents_are_added_and_refitted_off_the_frame_path_and_removed(scene, wal
     while not scene.idle() and time.monotonic() < deadline:
         time.sleep(0.01)
     assert errors and "broken" in errors[0] and "nonexistent" in errors[0]
+    # skinned_fallback: the garment's skinned template instead, reported; the agent lives and refits
+    errors.clear()
+    scene.request_agent(AgentSpec("fallback", (GarmentSpec("tshirt", database="/nonexistent.h5"),),
+                                  skinned_fallback=True))
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert scene.tick().dressed == ["fallback"]
+    assert scene.agents["fallback"].garments["tshirt"].kind == "skinned"
+    assert len(errors) == 1 and "nonexistent" in errors[0] and "skinned_fallback" in errors[0]
+    scene.request_shape("fallback", (0.3, 0.5, 0.5, 0.7, 0.5, 0.5))
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(errors) == 1 and scene.agents["fallback"].shape_generation == 1
 
 
 def test_parse_tier_names_the_line():

@@ -23,9 +23,10 @@ from typing import Callable
 
 from ..body import PHENOTYPE_NAMES
 from ..engine.config import EngineKnobs
+from ..scene.garments import GarmentSpec
 from ..scene.lod import DEFAULT_TIER_TEXT, parse_tiers
 
-__all__ = ["PARAMETERS", "GarmentEngines", "ParameterError", "Spec", "parse_garment_map", "validate"]
+__all__ = ["PARAMETERS", "GarmentEngines", "ParameterError", "Spec", "garment_specs", "parse_garment_map", "validate"]
 
 QOS_RELIABILITY = ("best_effort", "reliable")
 _GARMENT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")  # becomes a topic token: ~/<garment>/points
@@ -63,6 +64,12 @@ def one_of(*choices) -> Callable:
             raise ParameterError(f"{name} must be one of {', '.join(map(str, choices))}, got {value!r}")
         return value
     return check
+
+
+def subdivision_rounds(name, value) -> int:
+    if isinstance(value, bool) or value not in (0, 1, 2):
+        raise ParameterError(f"{name} must be 0, 1 or 2, got {value!r}")
+    return int(value)
 
 
 def boolean(name, value) -> bool:
@@ -243,15 +250,18 @@ PARAMETERS: dict[str, Spec] = {
     "inside_check_hz": Spec(0.0, "rate at which the last published garments are tested against the posed body (the "
                                  "winding-number test of the build and the evaluation, on a background thread; "
                                  "~/status 'inside'), Hz, in [0, 2]; 0 = off (the default: each check delays the "
-                                 "ticks around it); one agent only", check=number(0.0, 2.0)),
+                                 "ticks around it); a crowd checks the agent nearest the viewer in view",
+        check=number(0.0, 2.0)),
     "publish_body": Spec(False, "also publish the posed body surface on ~/body/points and ~/body/mesh, and its "
                                 "skin and bones (~/body/skin, ~/body/bones)", check=boolean),
     "answer_on_arrival": Spec(True, "dress a new pose as soon as it arrives (unless within half a period of the last "
                                     "answer: the timer takes those), so latency is not tied to the timer's phase",
                                         check=boolean),
     "frame_id": Spec("agent", "frame_id stamped on every published message", check=text),
-    "joint_state_topic": Spec("joint_states", "sensor_msgs/JointState input topic", runtime=False, check=text),
-    "shape_topic": Spec("body_shape", "std_msgs/Float32MultiArray body-shape input topic", runtime=False, check=text),
+    "joint_state_topic": Spec("joint_states", "sensor_msgs/JointState input topic (a crowd agent's: <agent>/<topic>)",
+                              runtime=False, check=text),
+    "shape_topic": Spec("body_shape", "std_msgs/Float32MultiArray body-shape input topic (a crowd agent's: "
+                                    "<agent>/<topic>)", runtime=False, check=text),
     "garments": Spec(["tshirt"], "garments to dress the agent in (templates tshirt, longsleeve, trousers)",
         check=names("garment", "letters, digits, _; not 'body'", reserved=("body",))),
     "garment_vertices": Spec([], "per-garment vertex budget 'name:count' of skinned templates (level of detail)",
@@ -260,8 +270,8 @@ PARAMETERS: dict[str, Spec] = {
         check=garment_map()),
     "garment_models": Spec([], "per-garment model of a garment with a database, 'name:model': agentdress (synthesis, "
                                "the default) or santesteban (Santesteban et al. 2019, from the database's "
-                               "garment_model/santesteban group; one agent only, README 'Santesteban et al.'s "
-                               "system')", check=garment_map(_garment_model)),
+                               "garment_model/santesteban group, at every tier of a crowd; README 'Santesteban "
+                               "et al.'s system')", check=garment_map(_garment_model)),
     "engine": Spec(["pose_model=examples", "projection=8", "tshirt:pose_model=regressor", "tshirt:fold=false",
                     "trousers:pose_model=regressor", "trousers:fold=false", "longsleeve:pose_model=regressor",
                     "longsleeve:fold=false"],
@@ -272,7 +282,7 @@ PARAMETERS: dict[str, Spec] = {
                        check=GarmentEngines.parse),
     "display_subdivision": Spec(1, "rounds of Loop subdivision (0, 1, 2) of each garment for display, published as "
                                    "its cloud and mesh (a fixed sparse matrix after penetration handling; README "
-                                   "'Display')", runtime=False, check=one_of(0, 1, 2)),
+                                   "'Display')", runtime=False, check=subdivision_rounds),
     "garment_layers": Spec([], "per-garment layer 'name:layer' (templates: trousers 1, tshirt and longsleeve 2); a "
                                "garment is pushed out of the next lower layer's; tucked in: ['trousers:3']",
                            runtime=False, check=garment_map(_layer)),
@@ -335,6 +345,18 @@ def validate(name: str, value):
     if spec is None:
         raise ParameterError(f"unknown parameter {name!r}")
     return spec.validate(name, value)
+
+
+def garment_specs(config: dict) -> tuple[GarmentSpec, ...]:
+    """The garments of checked parameter values (the node's, or an agent's with its overrides), in publishing
+    order: each one's vertex budget, database, and for a garment with a database its engine knobs and model."""
+    specs = []
+    for g in config["garments"]:
+        database = config["garment_databases"].get(g)
+        specs.append(GarmentSpec(g, config["garment_vertices"].get(g), database,
+                                 config["engine"].for_garment(g) if database else EngineKnobs(),
+                                 config.get("garment_models", {}).get(g, GARMENT_MODELS[0])))
+    return tuple(specs)
 
 
 def check_garment_config(garments, databases: dict, known_garments, models: dict | None = None) -> None:

@@ -62,7 +62,7 @@ class GarmentLibrary:
                 else:
                     engine_config = spec.engine.config() if spec.database and spec.engine else None
                     model = self._make(spec.name, spec.database, spec.vertices, self.body, REFERENCE_SHAPE,
-                                       engine_config)
+                                       engine_config, spec.model)
                 self._models[spec] = model
             return model
 

@@ -13,7 +13,8 @@ A tier is one line of text, so a list of them is a plain ROS string-array parame
 `<name> <max distance in m | inf> <synthesis | skinned> [key=value ...]`: keys are the engine's per-frame knobs
 (engine.config.PER_FRAME_KNOBS, read by EngineKnobs.parse like the node's `engine` parameter: neighbors,
 penetration, projection (0 only: off), decay, damping, power, pose_model (where neither the agent's nor the tier's
-folds anchor residuals; kept otherwise)) for synthesis tiers, and `every=n` for any tier. Tiers are ordered by distance; the last one must reach `inf`.
+folds anchor residuals; kept otherwise)) for synthesis tiers, and `every=n` for any tier. Tiers are ordered by
+distance; the last one must reach `inf`.
 """
 from __future__ import annotations
 
