@@ -238,6 +238,24 @@ def test_an_agent_runs_the_garment_model_its_spec_names(scene, body, walk):
         np.testing.assert_array_equal(dressed, np.asarray(expected, dtype=np.float32))
 
 
+def test_an_agents_body_is_masked_by_its_garments_as_the_single_agents(scene, body, walk):
+    """publish_body in a crowd: the body without the faces its garments cover, its band under their edges sunk,
+    exactly the single agent's (display.models.dress_for_display), at every tier."""
+    from agentdress_ros.display.models import dress_for_display
+    from agentdress_ros.ros.garment_models import make_body_model, make_garment_model
+
+    beta = (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)
+    agent = _add(scene, "a", beta, publish_body=True)
+    models = {g.name: make_garment_model(g.name, g.database, None, body, beta, g.engine.config()) for g in GARMENTS}
+    single = dress_for_display({**models, "body": make_body_model(body, beta)}, body, {}, 0, beta)["body"]
+    masked = agent.garments["body"]
+    assert len(single.faces) < len(make_body_model(body).faces)
+    np.testing.assert_array_equal(masked.faces, single.faces)
+    for level, frame in enumerate((4, 8, 12, 16)):
+        rotvecs, root = walk.rotvecs[frame], walk.root_translation[frame]
+        np.testing.assert_array_equal(masked.dress(level, rotvecs, root), single.synthesize(rotvecs, root))
+
+
 def test_a_body_streamed_as_bones_is_posed_without_vertices(scene, walk):
     """bones_only (set by the crowd node while nobody takes the body's points, only its bones): the body's frame is
     None, its bone transforms are those of the full frame, and the garments are the same as with the body's

@@ -6,7 +6,7 @@ Active when the parameter `agents` lists names. Per agent `<a>` (topics relative
   in   <a>/body_shape            std_msgs/Float32MultiArray  (qos.shape.*; <a>/<shape_topic>)
   out  ~/<a>/<garment>/points    sensor_msgs/PointCloud2     (qos.points.*), stamped with the answered JointState
   out  ~/<a>/<garment>/mesh      shape_msgs/Mesh             reliable, transient local, once per (re)build
-  out  ~/<a>/body/points|mesh    with publish_body
+  out  ~/<a>/body/points|mesh    with publish_body (without the faces its garments cover, as the single agent's)
   out  ~/<a>/body/skin|bones     with publish_body: the body's binding (transient local, per build and shape) and
                                  each frame's bone transforms (the node's single-agent docstring says more)
 and for the scene:

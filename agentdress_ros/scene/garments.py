@@ -66,6 +66,24 @@ class GarmentLibrary:
                 self._models[spec] = model
             return model
 
+    def covered_body(self, garments: tuple):
+        """The shared body model without the faces that `garments` (GarmentSpecs) cover, the band kept under their
+        edges sunk: the single agent's masking (display.models.dress_for_display), made once per set of garments.
+        Raises what the makers raise."""
+        key = ("body", garments)
+        with self._lock:
+            model = self._models.get(key)
+        if model is None:
+            from ..display.models import dress_for_display
+
+            models = {g.name: self.get(g) for g in garments}
+            equal_layers = {name: 0 for name in models}  # the garments are not layered here: only the body is made
+            model = dress_for_display({**models, "body": self.get(GarmentSpec("body"))}, self.body,
+                                      equal_layers)["body"]
+            with self._lock:
+                model = self._models.setdefault(key, model)
+        return model
+
     def fitted(self, spec: GarmentSpec, beta, garment: "AgentGarment") -> bool:
         """Fit `garment` (an AgentGarment of `spec`) to beta, sharing the shape state of an earlier agent fitted to
         the same beta (shape states are never changed in place: a later set_shape of either builds a new one).

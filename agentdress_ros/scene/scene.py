@@ -220,10 +220,14 @@ class Scene:
     def build_agent(self, spec: AgentSpec) -> Agent:
         """Build an agent now (loads shared garment data on first use). Raises what the garment makers raise."""
         tiers = self.config.lod.tiers
-        specs = list(spec.garments) + ([GarmentSpec("body")] if spec.publish_body else [])
+        covering = tuple(g.name for g in spec.garments)
+        specs = list(spec.garments) + ([GarmentSpec("body", covered_by=covering)] if spec.publish_body else [])
         garments, used, clamped = {}, {}, False
         for g in specs:
-            shared, used[g.name] = self._shared(g, spec.skinned_fallback)
+            if g.covered_by:  # the body, masked by the garments it wears as the single agent's is
+                shared, used[g.name] = self.library.covered_body(tuple(used[n] for n in g.covered_by)), g
+            else:
+                shared, used[g.name] = self._shared(g, spec.skinned_fallback)
             garment = garments[g.name] = AgentGarment(shared, tiers, 0 if g.name == "body" else self.config.fade_frames)
             clamped |= self.library.fitted(used[g.name], spec.beta, garment)
         agent = Agent(spec, garments, self.pose_factory(), 0, clamped)
