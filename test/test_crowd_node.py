@@ -211,6 +211,29 @@ def test_markers_for_rviz_per_agent(crowd):
     assert client.set_parameters(marker_rate_hz=0.0)[0].successful
 
 
+def test_inside_check_tests_the_nearest_agents_last_cloud(crowd, body):
+    """inside_check_hz in a crowd: the last cloud of the agent nearest the viewer in view (without a viewer pose:
+    the first by name) is tested against its posed body, the single agent's check on ~/status crowd.inside."""
+    from agentdress_ros.ros.inside_check import InsideChecker
+
+    client, _ = crowd
+    walk = make_motion("walk", fps=30.0)
+    vertices, _ = client.answer("alice", walk.rotvecs[11], walk.root_translation[11])
+    assert client.set_parameters(inside_check_hz=2.0)[0].successful
+    try:
+        assert spin_until(client.executor, lambda: client.status and client.status[-1]["crowd"]["inside"].get(
+            "checks", 0) >= 2, 15.0), client.status[-1]["crowd"]["inside"]
+        inside = client.latest_status()["crowd"]["inside"]
+    finally:
+        assert client.set_parameters(inside_check_hz=0.0)[0].successful
+    beta = [0.5, 2.0 / 3.0, 0.5, 0.5, 0.5, 0.5]
+    checker = InsideChecker(body, None)
+    expected = checker.check({"tshirt": (vertices, _engine(body, beta).faces)}, walk.rotvecs[11],
+                             walk.root_translation[11], beta)
+    checker.stop()
+    assert inside["agent"] == "alice" and inside["garments"] == expected["garments"], inside
+
+
 def test_a_bad_message_to_one_agent_never_affects_another(crowd):
     client, _ = crowd
     walk = make_motion("walk", fps=30.0)

@@ -19,7 +19,8 @@ from hypothesis import strategies as st
 
 from agentdress_ros.motion.joint_names import JOINT_NAMES
 from agentdress_ros.ros.inputs import InputRejected, PoseInput, check_shape_values
-from agentdress_ros.ros.params import ParameterError, check_garment_config, engine_for, parse_garment_map, validate
+from agentdress_ros.engine.config import EngineKnobs
+from agentdress_ros.ros.params import GarmentEngines, ParameterError, check_garment_config, parse_garment_map, validate
 from agentdress_ros.ros.runtime import GarmentSpec, OutputGuard, SceneSpec, build_model_set
 
 # ---------------------------------------------------------------------------------------------------- pure checks
@@ -100,20 +101,20 @@ def test_parameter_validation_reasons():
                                ("engine", ["dtype=float16"], "dtype"), ("engine", ["neighbors=2", "neighbors=3"],
                                                                         "twice"),
                                ("engine", ["tshirt:pose_model=neural"], "tshirt:pose_model"),
-                               ("engine", ["tshirt:neighbors=0"], "(tshirt)"), ("engine", ["bad name:decay=true"],
+                               ("engine", ["tshirt:neighbors=0"], "tshirt:neighbors"), ("engine", ["bad name:decay=true"],
                                                                               "garment:field=value"),
                                ("engine", ["tshirt:decay=true", "tshirt:decay=false"], "twice")]:
         with pytest.raises(ParameterError, match=None) as info:
             validate(name, value)
         assert words in str(info.value), (name, value, str(info.value))
     assert validate("garment_vertices", None) == {}  # an empty YAML list arrives as "not set"
-    assert validate("engine", ["pose_model=examples", "neighbors=3", "penetration=False", "components=all"]) == (
-        ("components", None), ("neighbors", 3), ("penetration", False), ("pose_model", "examples"))
+    assert validate("engine", ["pose_model=examples", "neighbors=3", "penetration=False", "components=all"]) == \
+        GarmentEngines(EngineKnobs.of(components=None, neighbors=3, penetration=False, pose_model="examples"))
     # a "garment:" prefix overrides a knob for that garment only
     engine = validate("engine", ["pose_model=examples", "neighbors=3", "tshirt:pose_model=regressor",
                                  "tshirt:neighbors=5"])
-    assert engine_for(engine, "tshirt") == (("neighbors", 5), ("pose_model", "regressor"))
-    assert engine_for(engine, "trousers") == (("neighbors", 3), ("pose_model", "examples"))
+    assert engine.for_garment("tshirt") == EngineKnobs.of(neighbors=5, pose_model="regressor")
+    assert engine.for_garment("trousers") == EngineKnobs.of(neighbors=3, pose_model="examples")
     assert parse_garment_map("garment_databases", ["tshirt: a.h5", ""]) == {"tshirt": "a.h5"}
     with pytest.raises(ParameterError, match="hat"):
         check_garment_config(["tshirt", "hat"], {}, ("tshirt", "trousers"))

@@ -15,6 +15,7 @@ from agentdress_ros.offline.regressor import (RegressorSettings, TrainingData, a
                                             train_database_regressor, validate_example_copies, vertex_error)
 from agentdress_ros.offline.sequences import load_sequence_pack
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
+from agentdress_ros.engine.config import EngineKnobs
 from agentdress_ros.engine.database import as_stored
 from agentdress_ros.engine.engine import permute_vertices, select_database
 from agentdress_ros.engine.pose_models import INPUT_CLIP, RegressorDecoder
@@ -205,11 +206,11 @@ def test_a_fork_takes_another_pose_model_only_without_the_fold(body, database, t
 
     scene = Scene(body, SceneConfig(lod_enabled=False, budget_ms=0.0))
     try:
-        spec = GarmentSpec("tshirt", database=str(DATABASE), engine=(("fold", True), ("pose_model", "regressor")))
+        spec = GarmentSpec("tshirt", database=str(DATABASE), engine=EngineKnobs.of(fold=True, pose_model="regressor"))
         agent = scene.build_agent(AgentSpec("folds", (spec,), tuple(db.beta0)))
         levels = agent.garments["tshirt"]._levels
         assert levels[1][0] == "synthesis" and levels[1][1].pose_model.name == "regressor"
-        spec = GarmentSpec("tshirt", database=str(DATABASE), engine=(("fold", False), ("pose_model", "regressor")))
+        spec = GarmentSpec("tshirt", database=str(DATABASE), engine=EngineKnobs.of(fold=False, pose_model="regressor"))
         agent = scene.build_agent(AgentSpec("unfolded", (spec,), tuple(db.beta0)))
         assert agent.garments["tshirt"]._levels[1][1].pose_model.name == "examples"
     finally:

@@ -12,10 +12,11 @@ import pytest
 
 from agentdress_ros.scene import (AgentSpec, Candidate, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer,
                                   parse_tier, parse_tiers, schedule)
+from agentdress_ros.engine.config import EngineKnobs
 from agentdress_ros.scene.lod import DEFAULT_TIERS, quaternion_forward
 
 DATA = Path(__file__).resolve().parents[1] / "data"
-EXAMPLES = (("pose_model", "examples"),)
+EXAMPLES = EngineKnobs.of(pose_model="examples")
 GARMENTS = (GarmentSpec("tshirt", database=str(DATA / "tshirt_default.h5"), engine=EXAMPLES),
             GarmentSpec("trousers", database=str(DATA / "trousers_default.h5"), engine=EXAMPLES))
 BETA0 = (0.5, 2.0 / 3.0, 0.5, 0.5, 0.5, 0.5)
@@ -26,7 +27,8 @@ LOOK_X = (0.0, 0.0, 0.0, 1.0)  # identity orientation: looking along +x
 def test_tier_lines_parse_and_print_back():
     tiers = DEFAULT_TIERS
     assert [t.name for t in tiers] == ["near", "mid", "far", "distant"]
-    assert tiers[1].engine == (("neighbors", 2), ("penetration", False), ("pose_model", "examples"), ("projection", 0))
+    assert tiers[1].engine.as_dict() == {"neighbors": 2, "penetration": False, "pose_model": "examples",
+                                         "projection": 0}
     assert tiers[1].kind == "synthesis"
     assert tiers[2].kind == "skinned" and math.isinf(tiers[3].max_distance) and tiers[3].every == 6
     assert parse_tiers([t.text() for t in tiers]) == tiers
@@ -219,6 +221,41 @@ def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
     assert not np.allclose(published.frames["a"]["tshirt"], published.frames["b"]["tshirt"], atol=1e-2)
 
 
+def test_an_agent_runs_the_garment_model_its_spec_names(scene, body, walk):
+    """garment_models in a crowd: a garment whose spec names Santesteban et al.'s system dresses, at every tier,
+    exactly as the single agent's model of that name (the same maker, the same shape)."""
+    from agentdress_ros.models.garment_models import make_garment_model
+
+    beta = (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)
+    spec = GarmentSpec("tshirt", database=str(DATA / "tshirt_default.h5"), model="santesteban")
+    agent = scene.build_agent(AgentSpec("s", (spec,), beta))
+    scene.install(agent)
+    single = make_garment_model("tshirt", DATA / "tshirt_default.h5", None, body, beta, model="santesteban")
+    assert agent.garments["tshirt"].kind == single.kind == "santesteban"
+    for level, frame in enumerate((2, 9, 14, 20)):  # one frame per tier
+        dressed = agent.garments["tshirt"].dress(level, walk.rotvecs[frame], walk.root_translation[frame])
+        expected = single.synthesize(walk.rotvecs[frame], walk.root_translation[frame])
+        np.testing.assert_array_equal(dressed, np.asarray(expected, dtype=np.float32))
+
+
+def test_an_agents_body_is_masked_by_its_garments_as_the_single_agents(scene, body, walk):
+    """publish_body in a crowd: the body without the faces its garments cover, its band under their edges sunk,
+    exactly the single agent's (display.models.dress_for_display), at every tier."""
+    from agentdress_ros.display.models import dress_for_display
+    from agentdress_ros.models.garment_models import make_body_model, make_garment_model
+
+    beta = (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)
+    agent = _add(scene, "a", beta, publish_body=True)
+    models = {g.name: make_garment_model(g.name, g.database, None, body, beta, g.engine.config()) for g in GARMENTS}
+    single = dress_for_display({**models, "body": make_body_model(body, beta)}, body, {}, 0, beta)["body"]
+    masked = agent.garments["body"]
+    assert len(single.faces) < len(make_body_model(body).faces)
+    np.testing.assert_array_equal(masked.faces, single.faces)
+    for level, frame in enumerate((4, 8, 12, 16)):
+        rotvecs, root = walk.rotvecs[frame], walk.root_translation[frame]
+        np.testing.assert_array_equal(masked.dress(level, rotvecs, root), single.synthesize(rotvecs, root))
+
+
 def test_a_body_streamed_as_bones_is_posed_without_vertices(scene, walk):
     """bones_only (set by the crowd node while nobody takes the body's points, only its bones): the body's frame is
     None, its bone transforms are those of the full frame, and the garments are the same as with the body's
@@ -388,6 +425,19 @@ def test_agents_are_added_and_refitted_off_the_frame_path_and_removed(scene, wal
     while not scene.idle() and time.monotonic() < deadline:
         time.sleep(0.01)
     assert errors and "broken" in errors[0] and "nonexistent" in errors[0]
+    # skinned_fallback: the garment's skinned template instead, reported; the agent lives and refits
+    errors.clear()
+    scene.request_agent(AgentSpec("fallback", (GarmentSpec("tshirt", database="/nonexistent.h5"),),
+                                  skinned_fallback=True))
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert scene.tick().dressed == ["fallback"]
+    assert scene.agents["fallback"].garments["tshirt"].kind == "skinned"
+    assert len(errors) == 1 and "nonexistent" in errors[0] and "skinned_fallback" in errors[0]
+    scene.request_shape("fallback", (0.3, 0.5, 0.5, 0.7, 0.5, 0.5))
+    while not scene.idle() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(errors) == 1 and scene.agents["fallback"].shape_generation == 1
 
 
 def test_parse_tier_names_the_line():

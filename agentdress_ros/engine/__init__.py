@@ -12,6 +12,8 @@ _EXPORTS = {
     "ShapeReport": ".engine",
     "load_engine": ".engine",
     "EngineConfig": ".config",
+    "EngineKnobs": ".config",
+    "ENGINE_KNOBS": ".config",
     "Database": ".database",
     "DatabaseError": ".database",
     "Regressor": ".database",

@@ -1,9 +1,11 @@
 """EngineConfig: every knob of the runtime engine that trades speed for accuracy, in one place."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 TAYLOR_MODES = ("augmented", "plain", "zeroth")
+DTYPES = ("float32", "float64")
 
 
 @dataclass(frozen=True)
@@ -83,7 +85,7 @@ class EngineConfig:
                              "taylor='augmented'")
         if not self.shape_model and self.taylor == "zeroth":
             raise ValueError("taylor='zeroth' is a blend of anchors: it needs shape_model=True")
-        if self.dtype not in ("float32", "float64"):
+        if self.dtype not in DTYPES:
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if int(self.neighbors) < 1:
             raise ValueError(f"neighbors must be >= 1, got {self.neighbors}")
@@ -93,3 +95,126 @@ class EngineConfig:
             raise ValueError(f"damping (eta) must lie in [0, 1), got {self.damping}")
         if self.components is not None and int(self.components) < 1:
             raise ValueError(f"components must be >= 1 or None, got {self.components}")
+
+
+# ---- knobs set by text (the node's `engine` parameter, its per-garment entries, a crowd's tier lines) ----------
+@dataclass(frozen=True)
+class Knob:
+    """How one EngineConfig field is read from text: its type, the least value of a number, whether "none"/"all"
+    mean None (every one), the names a text knob takes, and whether it acts per frame (a fork of a loaded engine,
+    a crowd tier, may change it without touching the shared data)."""
+
+    kind: type
+    per_frame: bool = False
+    least: float | None = None
+    all_word: bool = False
+    choices: object = None  # () -> names, for a text knob
+
+    def read(self, name: str, text: str):
+        """`text` -> the knob's value; ValueError naming the knob and what is wrong."""
+        text = str(text).strip()
+        if self.kind is bool:
+            if text.lower() not in ("true", "false"):
+                raise ValueError(f"{name} must be true or false, got {text!r}")
+            return text.lower() == "true"
+        if self.kind is str:
+            names = self.choices()
+            if text not in names:
+                raise ValueError(f"{name} must be one of {', '.join(sorted(names))}, got {text!r}")
+            return text
+        if self.all_word and text.lower() in ("none", "all"):
+            return None
+        try:
+            value = self.kind(text)
+        except ValueError:
+            raise ValueError(f"{name}: {text!r} is not {'an integer' if self.kind is int else 'a number'}") from None
+        if self.kind is float and not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {text!r}")
+        if self.least is not None and value < self.least:
+            raise ValueError(f"{name} must be >= {self.least:g}, got {value}")
+        return value
+
+
+def _pose_model_names():
+    from .pose_models import POSE_MODELS  # the registry imports this module
+
+    return tuple(POSE_MODELS)
+
+
+#: The EngineConfig fields that text may set (the rest are library-only: anchor lists, vertex subsets, ...).
+ENGINE_KNOBS: dict[str, Knob] = {
+    "pose_model": Knob(str, per_frame=True, choices=_pose_model_names),
+    "taylor": Knob(str, choices=lambda: TAYLOR_MODES),
+    "dtype": Knob(str, choices=lambda: DTYPES),
+    "neighbors": Knob(int, per_frame=True, least=1),
+    "pose_neighbors": Knob(int, least=1),
+    "components": Knob(int, least=1, all_word=True),
+    "anchors": Knob(int, least=1, all_word=True),
+    "projection": Knob(int, per_frame=True, least=0),
+    "shape_model": Knob(bool),
+    "penetration": Knob(bool, per_frame=True),
+    "decay": Knob(bool, per_frame=True),
+    "clamp_to_training_range": Knob(bool),
+    "fold": Knob(bool),
+    "damping": Knob(float, per_frame=True),
+    "penetration_margin": Knob(float),
+    "power": Knob(float, per_frame=True),
+}
+#: The knobs a fork of a loaded engine may change (Engine.fork): they act per frame.
+PER_FRAME_KNOBS = tuple(name for name, knob in ENGINE_KNOBS.items() if knob.per_frame)
+
+
+@dataclass(frozen=True)
+class EngineKnobs:
+    """Engine knobs set by name, the others left at EngineConfig's defaults (or a parent engine's): `values` is
+    ((field, value), ...) sorted by field, so equal settings compare and hash equal (a shared garment's key)."""
+
+    values: tuple = ()
+
+    @classmethod
+    def of(cls, **values) -> "EngineKnobs":
+        bad = sorted(set(values) - set(ENGINE_KNOBS))
+        if bad:
+            raise ValueError(f"unknown engine knob {', '.join(bad)}; one of {', '.join(ENGINE_KNOBS)}")
+        return cls(tuple(sorted(values.items())))
+
+    @classmethod
+    def parse(cls, words, per_frame: bool = False, prefix: str = "") -> "EngineKnobs":
+        """["neighbors=2", "penetration=false", ...] -> EngineKnobs; ValueError naming the word and what is wrong
+        (a knob named `prefix` + field). `per_frame`: only the knobs a fork may change (a crowd tier)."""
+        allowed = PER_FRAME_KNOBS if per_frame else tuple(ENGINE_KNOBS)
+        values = {}
+        for word in words:
+            key, sep, text = (part.strip() for part in str(word).partition("="))
+            if not sep or not key or not text:
+                raise ValueError(f"{word!r} must look like field=value")
+            if key not in allowed:
+                raise ValueError(f"unknown field {prefix + key!r}; one of {', '.join(sorted(allowed))}")
+            if key in values:
+                raise ValueError(f"{prefix}{key} appears twice")
+            values[key] = ENGINE_KNOBS[key].read(prefix + key, text)
+        return cls(tuple(sorted(values.items())))
+
+    def __bool__(self) -> bool:
+        return bool(self.values)
+
+    def as_dict(self) -> dict:
+        return dict(self.values)
+
+    def get(self, name: str, default=None):
+        return self.as_dict().get(name, default)
+
+    def without(self, *names) -> "EngineKnobs":
+        return EngineKnobs(tuple((k, v) for k, v in self.values if k not in names))
+
+    def over(self, base: "EngineKnobs") -> "EngineKnobs":
+        """These knobs set on top of `base`'s."""
+        return EngineKnobs(tuple(sorted({**base.as_dict(), **self.as_dict()}.items())))
+
+    def config(self, base: "EngineConfig | None" = None) -> "EngineConfig":
+        """An EngineConfig with these knobs (on `base`, default EngineConfig()); ValueError from its checks."""
+        return replace(base or EngineConfig(), **self.as_dict())
+
+    def words(self) -> list[str]:
+        """Back to "field=value" words (parse(words()) == self)."""
+        return [f"{k}={'all' if v is None else str(v).lower() if isinstance(v, bool) else v}" for k, v in self.values]

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from ..body import AnnyBody, quads_to_triangles
 from ..body.kinematics import forward_kinematics, linear_blend_skinning, linear_blend_skinning_into
 from ..garment.binding import SurfaceBinding, evaluate_surface_binding, largest_face_corners, vertex_normals
-from .config import TAYLOR_MODES, EngineConfig
+from .config import PER_FRAME_KNOBS, TAYLOR_MODES, EngineConfig
 from .database import Database, read_database, shape_features
 from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, project_out_of_body,
                       region_neighbours, shape_anchors, spaced_candidates, synthesize_vertices, unpose)
@@ -466,7 +466,7 @@ class Engine:
 
     # ---------------------------------------------------------------- many agents on one loaded database
     #: EngineConfig fields a fork may change: they act per frame and leave the shape state's meaning unchanged.
-    FORK_FIELDS = ("neighbors", "penetration", "projection", "decay", "damping", "power", "pose_model")
+    FORK_FIELDS = PER_FRAME_KNOBS
 
     def fork(self, **changes) -> "Engine":
         """A new engine for another agent (or another level of detail of this one) on the same loaded data.

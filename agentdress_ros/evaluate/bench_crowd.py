@@ -191,13 +191,13 @@ def _run_cpu(count: int, ticks: int = 60, engine: tuple = tuple(default_engine()
     from ..body import AnnyBody
     from ..ros.crowd_demo import CrowdPlayer
     from ..ros.messages import SerializedCloud
-    from ..ros.params import engine_for, parse_engine
+    from ..ros.params import validate
     from ..scene import AgentSpec, GarmentSpec, Scene, SceneConfig
 
     body = AnnyBody()
     scene = Scene(body, SceneConfig(lod_enabled=False, budget_ms=0.0, fade_frames=0))
-    knobs = parse_engine(list(engine))
-    garments = tuple(GarmentSpec(g, database=str(p), engine=engine_for(knobs, g)) for g, p in DATABASES.items())
+    knobs = validate("engine", list(engine))
+    garments = tuple(GarmentSpec(g, database=str(p), engine=knobs.for_garment(g)) for g, p in DATABASES.items())
     player = CrowdPlayer(count, 30.0)
     try:
         for i, track in enumerate(player.tracks):

@@ -28,11 +28,11 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _models(body, databases: dict, subdivision: int, layered: bool):
-    from ..ros.params import PARAMETERS, engine_for, parse_engine
+    from ..ros.params import PARAMETERS, validate
     from ..ros.runtime import GarmentSpec, SceneSpec, build_model_set
 
-    engine = parse_engine(PARAMETERS["engine"].default)  # the node default's knobs, per garment
-    garments = tuple(GarmentSpec(g, None, str(p), engine_for(engine, g)) for g, p in databases.items())
+    engine = validate("engine", PARAMETERS["engine"].default)  # the node default's knobs, per garment
+    garments = tuple(GarmentSpec(g, None, str(p), engine.for_garment(g)) for g, p in databases.items())
     layers = () if layered else tuple((g, 1) for g in databases)  # equal layers: no push
     scene = SceneSpec(garments, True, (0.5, 2 / 3, 0.5, 0.5, 0.5, 0.5), False, subdivision, layers)
     return build_model_set(scene, body)

@@ -2,21 +2,24 @@
 
 Active when the parameter `agents` lists names. Per agent `<a>` (topics relative to the node's namespace; `~` is
 /agentdress_node):
-  in   <a>/joint_states          sensor_msgs/JointState      (qos.joint_states.*)
-  in   <a>/body_shape            std_msgs/Float32MultiArray  (qos.shape.*)
+  in   <a>/joint_states          sensor_msgs/JointState      (qos.joint_states.*; <a>/<joint_state_topic>)
+  in   <a>/body_shape            std_msgs/Float32MultiArray  (qos.shape.*; <a>/<shape_topic>)
   out  ~/<a>/<garment>/points    sensor_msgs/PointCloud2     (qos.points.*), stamped with the answered JointState
   out  ~/<a>/<garment>/mesh      shape_msgs/Mesh             reliable, transient local, once per (re)build
-  out  ~/<a>/body/points|mesh    with publish_body
+  out  ~/<a>/body/points|mesh    with publish_body (without the faces its garments cover, as the single agent's)
   out  ~/<a>/body/skin|bones     with publish_body: the body's binding (transient local, per build and shape) and
                                  each frame's bone transforms (the node's single-agent docstring says more)
 and for the scene:
   in   <viewer_topic>            geometry_msgs/PoseStamped   the headset, in the agents' frame (or moved there by
                                                              the fixed `viewer_offset` x, y, z, yaw)
-Each agent takes the node's garments, garment_databases, garment_vertices, engine, shape, frame_id and
-publish_body, overridden per agent by `agent.<a>.<parameter>` (startup, from the YAML), plus `agent.<a>.origin`
+Each agent takes the node's garments, garment_databases, garment_vertices, garment_models, engine, shape, frame_id
+and publish_body, overridden per agent by `agent.<a>.<parameter>` (startup, from the YAML), plus `agent.<a>.origin`
 (its frame's origin in the scene, for distances) and `agent.<a>.extra_cost_ms` (an artificial cost per frame, for
 tests and benchmarks of the frame budget). Agents added to `agents` at run time are built on the scene's worker
 thread and go live on a later tick; removed ones are dropped at once (their publishers destroyed).
+
+With inside_check_hz > 0 the last cloud of the agent nearest the viewer in view is tested against its posed body
+(~/status crowd.inside, the single agent's check).
 
 Inputs are polled: the agents' subscriptions sit on a second node that no executor spins, and each tick takes what
 waited (a KEEP_LAST queue keeps only the newest poses of agents nobody looked at). The agents nearest the viewer in
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 import rclpy
@@ -37,12 +41,13 @@ from sensor_msgs.msg import JointState, PointCloud2
 from shape_msgs.msg import Mesh
 from std_msgs.msg import Float32MultiArray
 
-from ..scene import AgentSpec, GarmentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tiers
+from ..scene import AgentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tiers
 from ..motion.joint_names import JOINT_NAMES
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
+from .inside_check import InsideChecker
 from ..models.garment_models import skin_binding
 from .messages import JointStateReader, SerializedBones, SerializedCloud, make_mesh, make_skin, stamp_from_ns
-from .params import ParameterError, engine_for, validate
+from .params import PARAMETERS, ParameterError, garment_specs, number
 
 # rclpy gives every publisher and subscription two QoS event handlers (incompatible QoS, incompatible type), and its
 # executor rebuilds the wait set from every handler on each callback, matching handlers by list search: with six
@@ -87,30 +92,54 @@ def _take_all(sub, handle) -> list:
             taken.append(message[0])
     return taken
 
-__all__ = ["AGENT_KEYS", "Crowd", "agent_override_names", "scene_config"]
+__all__ = ["AGENT_KEYS", "AgentTopics", "Crowd", "agent_overrides", "scene_config"]
 
-#: Per-agent override keys (`agent.<name>.<key>`): node parameters an agent may set for itself, and crowd-only ones.
-AGENT_KEYS = ("garments", "garment_databases", "garment_vertices", "engine", "shape", "frame_id", "publish_body",
-              "origin", "extra_cost_ms")
-
-
-def validate_agent_key(key: str, value):
-    """Coerce and check one per-agent override; ParameterError with the reason."""
-    if key == "origin":
-        if value is None or isinstance(value, (str, bool)) or len(value) != 3 or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in value):
-            raise ParameterError(f"origin must be three finite numbers (x, y, z), got {value!r}")
-        return tuple(float(v) for v in value)
-    if key == "extra_cost_ms":
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1000:
-            raise ParameterError(f"extra_cost_ms must be a number in [0, 1000], got {value!r}")
-        return float(value)
-    return validate(key, value)
+def _origin(name, value) -> tuple:
+    if value is None or isinstance(value, (str, bool)) or len(value) != 3 or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in value):
+        raise ParameterError(f"{name} must be three finite numbers (x, y, z), got {value!r}")
+    return tuple(float(v) for v in value)
 
 
-def agent_override_names(overrides) -> list[str]:
-    """`agent.<name>.<key>` parameter names among the node's parameter overrides (the YAML)."""
-    return sorted(n for n in overrides if n.startswith("agent.") and n.count(".") >= 2)
+#: Per-agent override keys (`agent.<name>.<key>`) and their checks: node parameters an agent may set for itself
+#: (their parameter's check), and crowd-only ones.
+AGENT_CHECKS = {**{key: PARAMETERS[key].check for key in ("garments", "garment_databases", "garment_vertices",
+                                                          "garment_models", "engine", "shape", "frame_id",
+                                                          "publish_body")},
+                "origin": _origin, "extra_cost_ms": number(0.0, 1000.0)}
+AGENT_KEYS = tuple(AGENT_CHECKS)
+
+
+def agent_overrides(values: dict) -> dict[str, dict]:
+    """{"<agent>.<key>": value} (the node's parameters under the prefix `agent`, from the YAML) -> {agent: {key:
+    checked value}}; ParameterError naming an unknown key or a bad value."""
+    overrides: dict[str, dict] = {}
+    for name, value in sorted(values.items()):
+        agent, _, key = name.partition(".")
+        if key not in AGENT_KEYS:
+            raise ParameterError(f"agent.{name}: unknown per-agent parameter {key!r}; one of {', '.join(AGENT_KEYS)}")
+        overrides.setdefault(agent, {})[key] = AGENT_CHECKS[key](f"agent.{name}", value)
+    return overrides
+
+
+@dataclass
+class AgentTopics:
+    """One agent's ROS side: its polled input subscriptions (joint states, serialized; body shape) and their
+    handles, the serialized poses waiting to be parsed and their reader, its publishers per garment (points,
+    mesh; skin and bones of a plain LBS model, the body), the agent whose publishers they are, the shape
+    generation whose binding went out last, and its marker publisher (the agents nearest the viewer)."""
+
+    subs: list
+    handles: list
+    pending: list = field(default_factory=list)
+    reader: JointStateReader = field(default_factory=JointStateReader)
+    points: dict = field(default_factory=dict)
+    mesh: dict = field(default_factory=dict)
+    skin: dict = field(default_factory=dict)
+    bones: dict = field(default_factory=dict)
+    installed: object = None
+    skin_generation: int | None = None
+    marker: object = None
 
 
 def scene_config(config: dict) -> SceneConfig:
@@ -124,18 +153,14 @@ def scene_config(config: dict) -> SceneConfig:
 class Crowd:
     """The crowd on `node` (an AgentDressNode): subscriptions and publishers per agent, the viewer, the tick."""
 
-    def __init__(self, node, body):
+    def __init__(self, node, body, overrides: dict):
+        """`node`: an AgentDressNode (its public publishing, QoS and reporting methods); `overrides`: the values of
+        its parameters under the prefix `agent` ({"<agent>.<key>": value})."""
         self.node, self.config = node, node.config
         self.scene = Scene(body, scene_config(self.config), pose_factory=self._pose_input,
-                           on_error=lambda message: node._warn("crowd/build", message), prepare=self._prepare)
-        self.overrides: dict[str, dict] = {}
-        for name in agent_override_names(node._parameter_overrides):
-            _, agent, key = name.split(".", 2)
-            if key not in AGENT_KEYS:
-                raise ParameterError(f"{name}: unknown per-agent parameter {key!r}; one of {', '.join(AGENT_KEYS)}")
-            value = node._parameter_overrides[name].value
-            self.overrides.setdefault(agent, {})[key] = validate_agent_key(key, value)
-        self.entities: dict[str, dict] = {}  # agent -> {"subs": [...], "points": {g: pub}, "mesh": {g: pub}}
+                           on_error=lambda message: node.warn("crowd/build", message), prepare=self._prepare)
+        self.overrides = agent_overrides(overrides)
+        self.entities: dict[str, AgentTopics] = {}
         self.arrivals: dict = {}  # agent -> its JointState reader on the spun node (the agents answered on arrival)
         # The agents' inputs live on a second node that no executor spins: rclpy's executor walks every entity it
         # waits on for each message it hands out, so with hundreds of subscriptions (2 per agent) receiving cost
@@ -160,13 +185,16 @@ class Crowd:
         self.viewer_sub = None
         if self.config["viewer_topic"]:
             self.viewer_sub = node.create_subscription(PoseStamped, self.config["viewer_topic"], self._on_viewer,
-                                                       node._qos("viewer"))
+                                                       node.qos("viewer"))
         self.viewer_stamp_ns = 0
+        # inside_check_hz: the garments of the agent nearest the viewer in view, tested against its posed body
+        self.inside = InsideChecker(body, lambda error: node.report_error("inside_check", error))
+        self.inside_agent = None
         self.set_agents(self.config["agents"], initial=True)
 
     # ---- agents ---------------------------------------------------------------------------------------------
     def _pose_input(self):
-        return PoseInput(self.node._stamp_jump_ns())
+        return PoseInput(self.node.stamp_jump_ns)
 
     def apply_parameters(self, changed: set):
         """Executor thread, after a successful `ros2 param set`."""
@@ -174,7 +202,7 @@ class Crowd:
             self.scene.config = scene_config(self.config)
         if "stamp_jump_threshold_s" in changed:
             for agent in self.scene.agents.values():
-                agent.pose.stamp_jump_ns = self.node._stamp_jump_ns()
+                agent.pose.stamp_jump_ns = self.node.stamp_jump_ns
         if changed & (set(AGENT_KEYS) | {"skinned_fallback"}):
             self.rebuild()
         if "agents" in changed:
@@ -183,12 +211,10 @@ class Crowd:
     def spec(self, name: str) -> AgentSpec:
         """The agent's spec: the node's parameters with the agent's overrides."""
         config = {**{k: self.config[k] for k in AGENT_KEYS if k in self.config}, **self.overrides.get(name, {})}
-        garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g),
-                                     engine_for(config["engine"], g) if config["garment_databases"].get(g) else ())
-                         for g in config["garments"])
+        garments = garment_specs(config)
         beta = tuple(float(b) for b in check_shape_values(config["shape"]).beta)
         return AgentSpec(name, garments, beta, config["frame_id"], config.get("origin", (0.0, 0.0, 0.0)),
-                         config.get("extra_cost_ms", 0.0), config["publish_body"])
+                         config.get("extra_cost_ms", 0.0), config["publish_body"], self.config["skinned_fallback"])
 
     def set_agents(self, names, initial: bool = False):
         """Make the agents `names`: build new ones (at startup now, later on the worker), drop the others."""
@@ -212,17 +238,19 @@ class Crowd:
         for name in self.entities:
             self.scene.request_agent(self.spec(name))
 
+    def _input_topic(self, name: str, parameter: str) -> str:
+        """An agent's input topic: the single agent's (joint_state_topic, shape_topic) under its name."""
+        return f"{name}/{self.config[parameter].lstrip('/')}"
+
     def _create_inputs(self, name: str):
         """The agent's input subscriptions, on the node the executor never waits on (see `poll`)."""
         inputs = self.inputs
-        subs = [inputs.create_subscription(JointState, f"{name}/joint_states", _never_called,
-                                           self.node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION,
+        subs = [inputs.create_subscription(JointState, self._input_topic(name, "joint_state_topic"), _never_called,
+                                           self.node.qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION,
                                            raw=True),
-                inputs.create_subscription(Float32MultiArray, f"{name}/body_shape", _never_called,
-                                           self.node._qos("shape"), event_callbacks=QUIET_SUBSCRIPTION)]
-        self.entities[name] = {"subs": subs, "handles": [sub.handle for sub in subs], "pending": [],
-                               "reader": JointStateReader(), "points": {}, "mesh": {}, "installed": None,
-                               "skin": {}, "bones": {}, "skin_generation": None}
+                inputs.create_subscription(Float32MultiArray, self._input_topic(name, "shape_topic"), _never_called,
+                                           self.node.qos("shape"), event_callbacks=QUIET_SUBSCRIPTION)]
+        self.entities[name] = AgentTopics(subs, [sub.handle for sub in subs])
 
     def _prepare(self, agent):
         """Worker thread: topology messages of a built agent."""
@@ -235,45 +263,46 @@ class Crowd:
         if entity is None:
             return
         node = self.node
-        for g in [g for g in entity["points"] if g not in agent.garments]:
-            node.destroy_publisher(entity["points"].pop(g))
-            node.destroy_publisher(entity["mesh"].pop(g))
+        for g in [g for g in entity.points if g not in agent.garments]:
+            node.destroy_publisher(entity.points.pop(g))
+            node.destroy_publisher(entity.mesh.pop(g))
             self.clouds.pop((agent.name, g), None)
-        for g in [g for g in entity["skin"] if g not in agent.garments or skin_binding(agent.garments[g].base) is None]:
-            node.destroy_publisher(entity["skin"].pop(g))
-            node.destroy_publisher(entity["bones"].pop(g))
+        for g in [g for g in entity.skin if g not in agent.garments or skin_binding(agent.garments[g].base) is None]:
+            node.destroy_publisher(entity.skin.pop(g))
+            node.destroy_publisher(entity.bones.pop(g))
             self.bones.pop((agent.name, g), None)
         for g in agent.garments:
-            if g not in entity["points"]:
-                entity["points"][g] = node.create_publisher(PointCloud2, f"~/{agent.name}/{g}/points",
-                                                            node._qos("points"), event_callbacks=QUIET_PUBLISHER)
-                entity["mesh"][g] = node.create_publisher(Mesh, f"~/{agent.name}/{g}/mesh", node.topology_qos,
+            if g not in entity.points:
+                entity.points[g] = node.create_publisher(PointCloud2, f"~/{agent.name}/{g}/points",
+                                                            node.qos("points"), event_callbacks=QUIET_PUBLISHER)
+                entity.mesh[g] = node.create_publisher(Mesh, f"~/{agent.name}/{g}/mesh", node.topology_qos,
                                                           event_callbacks=QUIET_PUBLISHER)
             mesh = self.topology.get(agent.name, {}).get(g)
             if mesh is not None:
-                entity["mesh"][g].publish(mesh)
-            if g not in entity["skin"] and skin_binding(agent.garments[g].base) is not None:
-                entity["skin"][g] = node.create_publisher(Float32MultiArray, f"~/{agent.name}/{g}/skin",
+                entity.mesh[g].publish(mesh)
+            if g not in entity.skin and skin_binding(agent.garments[g].base) is not None:
+                entity.skin[g] = node.create_publisher(Float32MultiArray, f"~/{agent.name}/{g}/skin",
                                                           node.topology_qos, event_callbacks=QUIET_PUBLISHER)
-                entity["bones"][g] = node.create_publisher(PoseArray, f"~/{agent.name}/{g}/bones", node._qos("points"),
+                entity.bones[g] = node.create_publisher(PoseArray, f"~/{agent.name}/{g}/bones", node.qos("points"),
                                                            event_callbacks=QUIET_PUBLISHER)
-        entity["installed"] = agent
-        entity["skin_generation"] = None  # sent with the agent's next frame
+        entity.installed = agent
+        entity.skin_generation = None  # sent with the agent's next frame
 
     def _destroy(self, name: str):
         entity = self.entities.pop(name, None)
         if entity is None:
             return
-        for sub in entity["subs"]:
+        for sub in entity.subs:
             self.inputs.destroy_subscription(sub)
         if name in self.arrivals:
             self.node.destroy_subscription(self.arrivals.pop(name))
-        for pub in [*entity["points"].values(), *entity["mesh"].values(), *entity["skin"].values(),
-                    *entity["bones"].values()]:
+        for pub in [*entity.points.values(), *entity.mesh.values(), *entity.skin.values(),
+                    *entity.bones.values()]:
             self.node.destroy_publisher(pub)
-        if "marker" in entity:
-            with self.node._lock:  # the marker thread may be publishing on it
-                self.node.destroy_publisher(entity.pop("marker"))
+        if entity.marker is not None:
+            with self.node.publish_lock:  # the marker thread may be publishing on it
+                marker, entity.marker = entity.marker, None
+                self.node.destroy_publisher(marker)
         for key in [k for k in self.clouds if k[0] == name]:
             del self.clouds[key]
         for key in [k for k in self.bones if k[0] == name]:
@@ -281,10 +310,10 @@ class Crowd:
         self.topology.pop(name, None)
 
     # ---- inputs ---------------------------------------------------------------------------------------------
-    def _take(self, entity: dict, which: int) -> list:
+    def _take(self, entity: AgentTopics, which: int) -> list:
         """Every message waiting on an agent's subscription `which` (0 joint states, serialized; 1 body shape),
         oldest first."""
-        return _take_all(entity["subs"][which], entity["handles"][which])
+        return _take_all(entity.subs[which], entity.handles[which])
 
     def poll(self):
         """Tick, before the scene decides: take the waiting poses, serialized, of every agent the tick may dress.
@@ -301,20 +330,20 @@ class Crowd:
             if shape_turn or agent is None or self.scene.needs_input(agent):
                 self._take_poses(name, entity, agent)
             if shape_turn:
-                if entity["pending"]:
+                if entity.pending:
                     self._parse_pending(agent)
-                shape = self.node._guarded(f"{name}/body_shape", self._on_shape)
+                shape = self.node.guarded(f"{name}/body_shape", self._on_shape)
                 for msg in self._take(entity, 1):
                     shape(name, msg)
         self._shape_turn += 1
 
-    def _take_poses(self, name: str, entity: dict, agent) -> None:
+    def _take_poses(self, name: str, entity: AgentTopics, agent) -> None:
         """The agent's waiting JointStates (serialized) into its pending list; a pose to dress marks it dirty. Poses
         of an agent with an arrival reader are dropped: that reader has them."""
         raw = self._take(entity, 0)
         if raw and name not in self.arrivals:
             self.node.stats.counts["joint_states_received"] += len(raw)
-            pending = entity["pending"]
+            pending = entity.pending
             pending.extend(raw)
             del pending[:-MAX_PENDING]
             if agent is not None:
@@ -328,14 +357,14 @@ class Crowd:
         if entity is None:
             return
         self._take_poses(agent.name, entity, agent)
-        if not entity["pending"]:
+        if not entity.pending:
             return
-        pending, entity["pending"] = entity["pending"], []
-        accept = self.node._guarded(f"{agent.name}/joint_states", self._on_joint_state)
-        newest = entity["reader"].read(pending[-1])
+        pending, entity.pending = entity.pending, []
+        accept = self.node.guarded(f"{agent.name}/joint_states", self._on_joint_state)
+        newest = entity.reader.read(pending[-1])
         if len(newest[0]) < len(JOINT_NAMES):  # a partial update: the older ones count too (parsing is the cost)
             for raw in pending[:-1]:
-                accept(agent.name, *entity["reader"].read(raw))
+                accept(agent.name, *entity.reader.read(raw))
         accept(agent.name, *newest)
 
     def sync_arrival(self):
@@ -349,9 +378,9 @@ class Crowd:
         for name in answered:
             if name not in self.arrivals and name in self.entities:
                 self.arrivals[name] = node.create_subscription(
-                    JointState, f"{name}/joint_states",
-                    node._guarded(f"{name}/joint_states", lambda m, n=name: self._on_arrival(n, m)),
-                    node._qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION, raw=True)
+                    JointState, self._input_topic(name, "joint_state_topic"),
+                    node.guarded(f"{name}/joint_states", lambda m, n=name: self._on_arrival(n, m)),
+                    node.qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION, raw=True)
 
     def _answered_on_arrival(self) -> list[str]:
         """The agents whose poses are dressed as they arrive: the nearest in view. Without a viewer pose (or with
@@ -373,8 +402,8 @@ class Crowd:
         entity = self.entities.get(name)
         if entity is None:
             return
-        entity["pending"].clear()  # taken by the tick before this reader matched: older than this pose
-        self._on_joint_state(name, *entity["reader"].read(raw))
+        entity.pending.clear()  # taken by the tick before this reader matched: older than this pose
+        self._on_joint_state(name, *entity.reader.read(raw))
         agent = self.scene.agents.get(name)
         if agent is None or time.monotonic() - agent.last_dressed < 0.5 / self.config["rate_hz"]:
             return
@@ -390,7 +419,7 @@ class Crowd:
         for name, sub in list(self.arrivals.items()):
             raws = _take_all(sub, sub.handle)
             if raws:
-                answer = self.node._guarded(f"{name}/joint_states", self._on_arrival)
+                answer = self.node.guarded(f"{name}/joint_states", self._on_arrival)
                 for raw in raws:  # oldest first, as the callback would have had them
                     answer(name, raw)
 
@@ -404,10 +433,10 @@ class Crowd:
             unknown = agent.pose.accept(names, positions, stamp_ns)
             if unknown:
                 node.stats.counts["unknown_joint_names"] += len(unknown)
-                node._warn(f"{name}/joint_states/unknown_names", f"{name}: ignoring unknown joint names: "
+                node.warn(f"{name}/joint_states/unknown_names", f"{name}: ignoring unknown joint names: "
                            + ", ".join(unknown[:10]))
         except InputRejected as error:
-            node._reject(f"{name}/joint_states", error)
+            node.reject(f"{name}/joint_states", error)
             return
         if agent.pose.timeline_jump_ns:  # a cut in this agent's motion: its decay history is from the old one
             node.stats.counts["new_timelines"] += 1
@@ -419,10 +448,10 @@ class Crowd:
         try:
             update = check_shape_values(msg.data)
         except InputRejected as error:
-            self.node._reject(f"{name}/body_shape", error)
+            self.node.reject(f"{name}/body_shape", error)
             return
         if update.clamped:
-            self.node._warn(f"{name}/body_shape/clamped", f"{name}/body_shape: {update.message}")
+            self.node.warn(f"{name}/body_shape/clamped", f"{name}/body_shape: {update.message}")
         self.scene.request_shape(name, update.beta)
 
     def _on_viewer(self, msg: PoseStamped):
@@ -430,7 +459,7 @@ class Crowd:
         try:
             viewer = Viewer.from_pose((p.x, p.y, p.z), (q.x, q.y, q.z, q.w), self.config["viewer_offset"])
         except ValueError as error:
-            self.node._reject("viewer_pose", InputRejected("non_finite", str(error)))
+            self.node.reject("viewer_pose", InputRejected("non_finite", str(error)))
             return
         self.viewer_stamp_ns = stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
         self.scene.set_viewer(viewer)
@@ -438,13 +467,13 @@ class Crowd:
     # ---- the tick -------------------------------------------------------------------------------------------
     def _publish(self, agent, frames: dict, stamp_ns: int):
         entity = self.entities.get(agent.name)
-        if entity is None or entity["installed"] is not agent:
+        if entity is None or entity.installed is not agent:
             return
         stamp_ns = stamp_ns or self.node.get_clock().now().nanoseconds
         frame_id = agent.spec.frame_id
         for g, vertices in frames.items():
             if vertices is None:  # posed as bones only (_sync_bones_only)
-                if g in entity["bones"] and np.isfinite(agent.garments[g].base.transforms).all():
+                if g in entity.bones and np.isfinite(agent.garments[g].base.transforms).all():
                     self._publish_bones(agent, entity, g, stamp_ns)
                 continue
             if not np.isfinite(vertices).all():  # never emit garbage: keep the last good cloud
@@ -454,23 +483,23 @@ class Crowd:
             cloud = self.clouds.get(key)
             if cloud is None or cloud.frame_id != frame_id or cloud.n_vertices != len(vertices):
                 cloud = self.clouds[key] = SerializedCloud(frame_id, len(vertices))
-            entity["points"][g].publish(cloud.set(vertices, stamp_ns))
-            if g in entity["bones"]:
+            entity.points[g].publish(cloud.set(vertices, stamp_ns))
+            if g in entity.bones:
                 self._publish_bones(agent, entity, g, stamp_ns)
 
     def _publish_bones(self, agent, entity, g: str, stamp_ns: int):
         """The frame's bone transforms of a plain LBS garment (the body); its binding first when the agent's shape
         changed since it was last sent (the frame was skinned from the new rest)."""
         model = agent.garments[g].base
-        if entity["skin_generation"] != agent.shape_generation:
-            for name, pub in entity["skin"].items():
+        if entity.skin_generation != agent.shape_generation:
+            for name, pub in entity.skin.items():
                 pub.publish(make_skin(*agent.garments[name].base.skin_binding()))
-            entity["skin_generation"] = agent.shape_generation
+            entity.skin_generation = agent.shape_generation
         key = (agent.name, g)
         bones = self.bones.get(key)
         if bones is None or bones.frame_id != agent.spec.frame_id or bones.n_bones != len(model.transforms):
             bones = self.bones[key] = SerializedBones(agent.spec.frame_id, len(model.transforms))
-        entity["bones"][g].publish(bones.set(model.transforms, stamp_ns))
+        entity.bones[g].publish(bones.set(model.transforms, stamp_ns))
 
     def tick(self) -> dict:
         started = time.perf_counter()
@@ -491,18 +520,18 @@ class Crowd:
         vertices, so not while they are drawn. A late subscriber to the points gets them within SHAPE_POLL_TICKS."""
         markers = self.config["marker_rate_hz"] > 0
         for name, entity in self.entities.items():
-            agent = entity["installed"]
+            agent = entity.installed
             if agent is None:
                 continue
-            for g in entity["bones"]:
+            for g in entity.bones:
                 garment = agent.garments.get(g)
                 if garment is not None:
-                    garment.bones_only = not markers and entity["points"][g].get_subscription_count() == 0
+                    garment.bones_only = not markers and entity.points[g].get_subscription_count() == 0
 
     def _install_new(self):
         for agent in list(self.scene.agents.values()):
             entity = self.entities.get(agent.name)
-            if entity is not None and entity["installed"] is not agent:
+            if entity is not None and entity.installed is not agent:
                 self._install(agent)
 
     def marker_jobs(self) -> list:
@@ -518,12 +547,12 @@ class Crowd:
             clouds = {g: self.clouds[(name, g)] for g in agent.garments if (name, g) in self.clouds}
             if entity is None or not clouds:
                 continue
-            if "marker" not in entity:
-                with node._lock:
-                    entity["marker"] = node.create_publisher(Marker, f"~/{name}/marker", 10,
+            if entity.marker is None:
+                with node.publish_lock:
+                    entity.marker = node.create_publisher(Marker, f"~/{name}/marker", 10,
                                                              event_callbacks=QUIET_PUBLISHER)
             frames = {g: (cloud.vertices(), agent.garments[g].faces) for g, cloud in clouds.items()}
-            jobs.append((lambda e=entity: e.get("marker"), frames,
+            jobs.append((lambda e=entity: e.marker, frames,
                          stamp_from_ns(max(c.stamp_ns for c in clouds.values())), agent.spec.frame_id))
         return jobs
 
@@ -532,10 +561,10 @@ class Crowd:
         for (name, g), cloud in list(self.clouds.items()):
             agent = self.scene.agents.get(name)
             if agent is not None and agent.visible and name in self.entities:
-                self.entities[name]["points"][g].publish(cloud.data)
+                self.entities[name].points[g].publish(cloud.data)
                 bones = self.bones.get((name, g))
-                if bones is not None and g in self.entities[name]["bones"]:
-                    self.entities[name]["bones"][g].publish(bones.data)
+                if bones is not None and g in self.entities[name].bones:
+                    self.entities[name].bones[g].publish(bones.data)
 
     def status(self) -> dict:
         status = self.scene.status()
@@ -545,13 +574,29 @@ class Crowd:
                                    for a in self.scene.agents.values()}
         status["pending"] = sorted(set(self.entities) - set(self.scene.agents))
         status["worker_idle"] = self.scene.idle()  # no agent build or shape refit waiting
+        status["inside"] = {"agent": self.inside_agent, **self.inside.status()}
         return status
+
+    def check_inside(self):
+        """Executor thread, at inside_check_hz: hand the last clouds of the agent nearest the viewer in view (not its
+        body) to the inside checker's thread, with the pose they were dressed for (skipped while a newer pose
+        waits: the next call takes it)."""
+        nearest = self._nearest_in_view()
+        agent = self.scene.agents.get(nearest[0]) if nearest else None
+        if agent is None or agent.pose.version != agent.done_version:
+            return
+        frames = {g: (self.clouds[(agent.name, g)].vertices(), garment.faces) for g, garment in agent.garments.items()
+                  if g != "body" and (agent.name, g) in self.clouds}
+        if frames:
+            self.inside_agent = agent.name
+            self.inside.submit(frames, agent.pose.rotvecs, agent.pose.root_translation, agent.beta)
 
     def receive_threads(self) -> list[int]:
         """Thread ids of the DDS threads of the node's own participant (not those of the crowd's inputs)."""
         return [t for t in dds_thread_ids() if t not in self.input_threads]
 
     def stop(self):
+        self.inside.stop()
         self.scene.stop()
         self.inputs.destroy_node()
         self.inputs_context.try_shutdown()

@@ -14,8 +14,9 @@ Topics (relative to the node, `~` = /agentdress_node):
                                                           a display client skins the body itself (exactly the cloud)
   out  ~/marker             visualization_msgs/Marker     only with marker_rate_hz > 0 (one per garment, ns = name;
                                                           a crowd: ~/<agent>/marker for the agents nearest the viewer)
-  out  ~/status             std_msgs/String (JSON)        at status_rate_hz; one agent: "inside", the last
-                                                          garments' shares inside the body (inside_check_hz)
+  out  ~/status             std_msgs/String (JSON)        at status_rate_hz; "inside" (a crowd: crowd.inside, the
+                                                          agent nearest the viewer): the last garments' shares
+                                                          inside the body (inside_check_hz)
 
 The status is JSON on a String rather than diagnostic_msgs on /diagnostics: its content is nested (timings,
 counts by reason, per-garment facts) and the bench, the viewer and the tests parse it directly; DiagnosticArray
@@ -56,9 +57,9 @@ from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .inside_check import InsideChecker
 from .messages import (SerializedBones, make_marker, make_mesh, make_point_cloud, make_skin, set_cloud_vertices,
                        stamp_from_ns)
-from .params import (GARMENT_MODELS, PARAMETERS, ParameterError, check_garment_config, database_file_problem,
-                     engine_for, validate)
-from .runtime import (GarmentSpec, ModelSet, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set,
+from .params import (PARAMETERS, ParameterError, check_garment_config, database_file_problem,
+                     garment_specs, validate)
+from .runtime import (ModelSet, ModelWorker, OutputGuard, SceneSpec, TickStats, build_model_set,
                       scene_key)
 from .spin import spin_until_shutdown
 
@@ -97,16 +98,20 @@ class Throttle:
 
 class AgentDressNode(Node):
     def __init__(self, body=None, **kwargs):
-        super().__init__(NODE_NAME, **kwargs)
+        # Every override is declared, so a crowd's per-agent ones (agent.<a>.<key>, from the YAML) are parameters
+        # the crowd reads by prefix; the node's own are declared again below, with their descriptions.
+        super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True, **kwargs)
         for name, spec in PARAMETERS.items():
+            if self.has_parameter(name):
+                self.undeclare_parameter(name)  # the override's value is taken again by declare_parameter
             self.declare_parameter(name, spec.default, ParameterDescriptor(
                 description=spec.description + ("" if spec.runtime else " (startup only)"), dynamic_typing=True))
         self.config = self._read_config()
         self.throttle = Throttle(self.config["warn_throttle_s"])
         self.stats = TickStats()
-        self.pose = PoseInput(self._stamp_jump_ns())
+        self.pose = PoseInput(self.stamp_jump_ns)
         self.guard = OutputGuard()
-        self._lock = threading.Lock()  # guards publishers against the marker thread
+        self.publish_lock = threading.Lock()  # guards publishers against the marker thread
 
         from ..body import AnnyBody
 
@@ -137,13 +142,14 @@ class AgentDressNode(Node):
 
         start = time.perf_counter()
         try:
-            self.crowd = Crowd(self, self.body)
+            self.crowd = Crowd(self, self.body, {name: parameter.value for name, parameter
+                                                 in self.get_parameters_by_prefix("agent").items()})
         except ParameterError as error:
             raise ConfigError(str(error)) from None
         self.get_logger().info(f"crowd ready in {time.perf_counter() - start:.2f} s: {len(self.crowd.entities)} "
                                f"agents, garments shared: {len(self.crowd.scene.library)}")
 
-    def _qos(self, kind: str) -> QoSProfile:
+    def qos(self, kind: str) -> QoSProfile:
         """The QoS of a stream kind: joint_states, shape, points (parameters qos.<kind>.*), viewer (best effort)."""
         if kind == "viewer":
             return _qos("best_effort", 1)
@@ -166,16 +172,14 @@ class AgentDressNode(Node):
         self._requested_parameters: dict[tuple, list[Parameter]] = {}
         self._retry_install = None
         self._last_pose = None  # (rotvecs, root translation) of the last frame computed
-        self.inside = InsideChecker(self.body, lambda error: self._report_error("inside_check", error))
+        self.inside = InsideChecker(self.body, lambda error: self.report_error("inside_check", error))
         self._install(model_set)
         self.worker = ModelWorker(self.body, model_set, on_built=self._on_built, prepare=self._prepare)
 
-        joint_qos = _qos(self.config["qos.joint_states.reliability"], self.config["qos.joint_states.depth"])
-        shape_qos = _qos(self.config["qos.shape.reliability"], self.config["qos.shape.depth"])
         self.create_subscription(JointState, self.config["joint_state_topic"],
-                                 self._guarded("joint_states", self._on_joint_state), joint_qos)
+                                 self.guarded("joint_states", self._on_joint_state), self.qos("joint_states"))
         self.create_subscription(Float32MultiArray, self.config["shape_topic"],
-                                 self._guarded("body_shape", self._on_shape), shape_qos)
+                                 self.guarded("body_shape", self._on_shape), self.qos("shape"))
 
     # ---- configuration -------------------------------------------------------------------------------------------
     def _read_config(self) -> dict:
@@ -187,17 +191,13 @@ class AgentDressNode(Node):
                 raise ConfigError(f"parameter {error}" if not str(error).startswith(name) else str(error)) from None
         try:
             check_garment_config(config["garments"], config["garment_databases"], TEMPLATES, config["garment_models"])
-            _check_crowd_models(config)
         except ParameterError as error:
             raise ConfigError(str(error)) from None
         return config
 
     def _scene(self, config=None, beta=None) -> SceneSpec:
         config = config or self.config
-        garments = tuple(GarmentSpec(g, config["garment_vertices"].get(g), config["garment_databases"].get(g),
-                                     engine_for(config["engine"], g),
-                                     config["garment_models"].get(g, GARMENT_MODELS[0]))
-                         for g in config["garments"])
+        garments = garment_specs(config)
         if beta is None:
             beta = check_shape_values(config["shape"]).beta
         return SceneSpec(garments, config["publish_body"], tuple(float(b) for b in beta), config["skinned_fallback"],
@@ -214,7 +214,6 @@ class AgentDressNode(Node):
                     raise ParameterError(f"{p.name} is read at startup only: restart the node to change it")
                 config[p.name] = validate(p.name, p.value)
             check_garment_config(config["garments"], config["garment_databases"], TEMPLATES, config["garment_models"])
-            _check_crowd_models(config)
             if bool(config["agents"]) != bool(self.config["agents"]):
                 raise ParameterError("agents: switching between one agent (empty list) and a crowd needs a restart "
                                      "of the node")
@@ -228,7 +227,8 @@ class AgentDressNode(Node):
             return SetParametersResult(successful=False, reason=str(error))
         return SetParametersResult(successful=True)
 
-    def _stamp_jump_ns(self) -> int:
+    @property
+    def stamp_jump_ns(self) -> int:
         return int(self.config["stamp_jump_threshold_s"] * 1e9)
 
     def _scene_parameters(self) -> list[Parameter]:
@@ -238,7 +238,7 @@ class AgentDressNode(Node):
         try:
             self._apply_parameters(parameters)
         except Exception as error:  # raised into rclpy's parameter service, it would end the spin
-            self._report_error("parameters", error)
+            self.report_error("parameters", error)
 
     def _apply_parameters(self, parameters):
         changed = {p.name for p in parameters}
@@ -255,7 +255,7 @@ class AgentDressNode(Node):
             self.crowd.apply_parameters(changed)
             return
         if "stamp_jump_threshold_s" in changed:
-            self.pose.stamp_jump_ns = self._stamp_jump_ns()
+            self.pose.stamp_jump_ns = self.stamp_jump_ns
         if "frame_id" in changed:
             self._dirty = True
         if "shape" in changed:
@@ -277,7 +277,7 @@ class AgentDressNode(Node):
         if old is not None:
             self.destroy_timer(old)
         if rate_hz > 0:
-            self._timer_by_key[key] = self.create_timer(1.0 / rate_hz, self._guarded(key, callback))
+            self._timer_by_key[key] = self.create_timer(1.0 / rate_hz, self.guarded(key, callback))
         if key == "marker" and rate_hz > 0 and getattr(self, "marker_pub", None) is None:
             self.marker_pub = self.create_publisher(Marker, "~/marker", 10)
 
@@ -304,7 +304,7 @@ class AgentDressNode(Node):
 
     def _on_built(self, model_set, seconds):
         for warning in model_set.warnings:
-            self._warn("fallback", warning)
+            self.warn("fallback", warning)
         # A new garment or level of detail is news; a shape refit (up to once a second from a sweep) is not.
         log = self.get_logger().info if model_set.topology else self.get_logger().debug
         log(f"garment models rebuilt in {1e3 * seconds:.0f} ms (generation {model_set.generation}): "
@@ -314,9 +314,9 @@ class AgentDressNode(Node):
         """Executor thread: make `model_set` live; (re)publish the topology of every model whose spec differs from
         the running one; drop removed garments. Whatever can fail runs before the switch: a failure leaves the
         running set live and intact."""
-        with self._lock:
+        with self.publish_lock:
             running = self.model_set.specs if self.model_set is not None else {}
-            points_qos = _qos(self.config["qos.points.reliability"], self.config["qos.points.depth"])
+            points_qos = self.qos("points")
             for name in model_set.models:
                 if name not in self.point_pubs:
                     self.point_pubs[name] = self.create_publisher(PointCloud2, f"~/{name}/points", points_qos)
@@ -357,11 +357,11 @@ class AgentDressNode(Node):
         """Executor thread: install a built set, act on a failed build, report what the worker caught."""
         if self.worker.ensure_running():
             self.stats.counts["worker_restarts"] += 1
-            self._warn("worker", "the model worker thread had died: restarted")
+            self.warn("worker", "the model worker thread had died: restarted")
             self._request_scene()
         for message in self.worker.take_errors():
             self.stats.errors["worker"] += 1
-            self._warn("worker", message)
+            self.warn("worker", message)
         failure = self.worker.take_failure()
         if failure is not None:
             self._on_rebuild_failed(*failure)
@@ -371,14 +371,14 @@ class AgentDressNode(Node):
             try:
                 self._install(ready)
             except Exception as error:
-                self._report_error("install", error)
+                self.report_error("install", error)
                 self._retry_install = ready
 
     def _on_rebuild_failed(self, scene: SceneSpec, message: str):
         """A requested model set could not be built: the running one stays. If the parameters still ask for the
         failed set, set them back to the running set's values, so `ros2 param get` shows what runs."""
         self.stats.counts["rebuild_failures"] += 1
-        self._warn("rebuild", message + "; the running garment models stay")
+        self.warn("rebuild", message + "; the running garment models stay")
         if scene_key(scene) != scene_key(self._scene()):
             return  # the parameters have moved on since: their own build decides
         rollback = [p for p in self._running_parameters if p.value != self.get_parameter(p.name).value]
@@ -387,36 +387,36 @@ class AgentDressNode(Node):
         results = self.set_parameters(rollback)
         if all(r.successful for r in results):
             self.stats.counts["parameter_rollbacks"] += 1
-            self._warn("rollback", "parameters set back to the running garment models: "
+            self.warn("rollback", "parameters set back to the running garment models: "
                        + ", ".join(f"{p.name}={p.value!r}" for p in rollback))
         else:
-            self._warn("rollback", "cannot set the parameters back to the running garment models: "
+            self.warn("rollback", "cannot set the parameters back to the running garment models: "
                        + "; ".join(r.reason for r in results if not r.successful))
 
     # ---- inputs --------------------------------------------------------------------------------------------------
-    def _warn(self, key: str, message: str):
+    def warn(self, key: str, message: str):
         allowed, held = self.throttle.allow(key, time.monotonic())
         if allowed:
             suffix = f" ({held} similar messages suppressed)" if held else ""
             self.get_logger().warning(message + suffix)
 
-    def _report_error(self, where: str, error: BaseException):
+    def report_error(self, where: str, error: BaseException):
         """An exception caught at `where`: counted on ~/status (errors), logged (throttled) with its reason."""
         self.stats.errors[where] += 1
-        self._warn(f"error/{where}", f"{where}: {error!r} (caught; the node goes on with the last good models)")
+        self.warn(f"error/{where}", f"{where}: {error!r} (caught; the node goes on with the last good models)")
 
-    def _guarded(self, where: str, callback):
+    def guarded(self, where: str, callback):
         """`callback` for an executor: what it raises is reported, never passed to the spin (which would end)."""
         def run(*args):
             try:
                 callback(*args)
             except Exception as error:
-                self._report_error(where, error)
+                self.report_error(where, error)
         return run
 
-    def _reject(self, topic: str, error: InputRejected):
+    def reject(self, topic: str, error: InputRejected):
         self.stats.rejected[f"{topic}/{error.reason}"] += 1
-        self._warn(f"{topic}/{error.reason}", f"rejected {topic} message ({error.reason}): {error}")
+        self.warn(f"{topic}/{error.reason}", f"rejected {topic} message ({error.reason}): {error}")
 
     def _on_joint_state(self, msg: JointState):
         self.stats.counts["joint_states_received"] += 1
@@ -424,15 +424,15 @@ class AgentDressNode(Node):
             unknown = self.pose.accept(msg.name, msg.position, stamp_to_ns(msg.header.stamp.sec,
                                                                               msg.header.stamp.nanosec))
         except InputRejected as error:
-            self._reject("joint_states", error)
+            self.reject("joint_states", error)
             return
         except Exception as error:  # never let a message kill the node
-            self._reject("joint_states", InputRejected("internal_error", repr(error)))
+            self.reject("joint_states", InputRejected("internal_error", repr(error)))
             return
         if unknown:  # each name once (the names listed on ~/status); the log line throttled like every warning
             self.stats.counts["unknown_joint_names"] += len(unknown)
             shown = ", ".join(unknown[:10]) + (f" and {len(unknown) - 10} more" if len(unknown) > 10 else "")
-            self._warn("joint_states/unknown_names", f"ignoring unknown joint names: {shown}")
+            self.warn("joint_states/unknown_names", f"ignoring unknown joint names: {shown}")
         if self.pose.timeline_jump_ns:
             self._on_new_timeline(self.pose.timeline_jump_ns)
         # Answer now rather than at the next tick (up to a period later). Arrivals closer than half a period to
@@ -444,7 +444,7 @@ class AgentDressNode(Node):
     def _on_new_timeline(self, jump_ns: int):
         """The stamps jumped (looped bag, clock reset, a stamp from the future): a cut in the motion."""
         self.stats.counts["new_timelines"] += 1
-        self._warn("joint_states/new_timeline", f"JointState stamps jumped {'back' if jump_ns < 0 else 'forward'} by "
+        self.warn("joint_states/new_timeline", f"JointState stamps jumped {'back' if jump_ns < 0 else 'forward'} by "
                    f"{abs(jump_ns) * 1e-9:.3f} s (more than stamp_jump_threshold_s): following the new timeline")
         for model in self.models.values():
             model.reset()  # the motion history (decay) belongs to the old timeline
@@ -454,15 +454,15 @@ class AgentDressNode(Node):
         try:
             self._apply_shape(msg.data, "body_shape")
         except InputRejected as error:
-            self._reject("body_shape", error)
+            self.reject("body_shape", error)
         except Exception as error:
-            self._reject("body_shape", InputRejected("internal_error", repr(error)))
+            self.reject("body_shape", InputRejected("internal_error", repr(error)))
 
     def _apply_shape(self, values, source: str):
         update = check_shape_values(values)
         if update.clamped:
             self.stats.counts["shapes_clamped"] += 1
-            self._warn(f"{source}/clamped", f"{source}: {update.message}")
+            self.warn(f"{source}/clamped", f"{source}: {update.message}")
         self.worker.request(beta=tuple(float(b) for b in update.beta))
 
     # ---- per-frame path ------------------------------------------------------------------------------------------
@@ -498,13 +498,13 @@ class AgentDressNode(Node):
                 vertices = model.synthesize(rotvecs, translation)
             except Exception as error:
                 vertices = None
-                self._warn(f"synthesis/{name}", f"{name}: synthesis failed ({error!r}); re-sending the last good frame")
+                self.warn(f"synthesis/{name}", f"{name}: synthesis failed ({error!r}); re-sending the last good frame")
             synthesis += time.perf_counter() - t0
             frame, problem = self.guard.check(name, vertices)
             if problem:
                 self.stats.counts[f"{problem}:{name}"] += 1
                 if problem == "non_finite_output":
-                    self._warn(f"nonfinite/{name}", f"{name}: synthesis produced non-finite vertices; "
+                    self.warn(f"nonfinite/{name}", f"{name}: synthesis produced non-finite vertices; "
                                                     "re-sending the last good frame")
             if frame is not None:
                 self._publish_frame(name, frame, stamp)
@@ -529,7 +529,7 @@ class AgentDressNode(Node):
         try:
             model.pose_bones(rotvecs, translation)
         except Exception as error:
-            self._warn(f"synthesis/{name}", f"{name}: posing failed ({error!r})")
+            self.warn(f"synthesis/{name}", f"{name}: posing failed ({error!r})")
             return
         if not np.isfinite(model.transforms).all():  # never emit garbage: the client keeps the last good bones
             self.stats.counts[f"non_finite_output:{name}"] += 1
@@ -563,7 +563,7 @@ class AgentDressNode(Node):
             set_cloud_vertices(cloud, frame, stamp, self.config["frame_id"])
         except Exception as error:
             self.clouds.pop(name, None)
-            self._report_error(f"pack/{name}", error)
+            self.report_error(f"pack/{name}", error)
             return
         self.clouds[name] = cloud
         self._publish_cloud(name, cloud)
@@ -578,7 +578,7 @@ class AgentDressNode(Node):
         try:
             self.point_pubs[name].publish(cloud)
         except Exception as error:
-            self._report_error(f"publish/{name}", error)
+            self.report_error(f"publish/{name}", error)
 
     # ---- status and markers --------------------------------------------------------------------------------------
     def status(self) -> dict:
@@ -613,7 +613,10 @@ class AgentDressNode(Node):
 
     def _on_inside_check(self):
         """Hand the last published garments (not the body) and their pose to the inside checker's thread."""
-        if self.crowd is not None or self._last_pose is None:
+        if self.crowd is not None:
+            self.crowd.check_inside()
+            return
+        if self._last_pose is None:
             return
         frames = {n: (self.guard.last_good[n].copy(), m.faces) for n, m in self.models.items()
                   if n in self.guard.last_good and n != "body"}
@@ -632,7 +635,7 @@ class AgentDressNode(Node):
             return
         if not self._marker_thread.is_alive():  # it died of something the loop does not catch: start a new one
             self.stats.counts["marker_restarts"] += 1
-            self._warn("marker_thread", "the marker thread had died: restarted")
+            self.warn("marker_thread", "the marker thread had died: restarted")
             self._start_marker_thread()
         # Snapshot references only; the marker thread builds the messages (tens of ms each) off the executor.
         if self.crowd is not None:
@@ -657,14 +660,14 @@ class AgentDressNode(Node):
                 for publisher, frames, stamp, frame_id in job:
                     self._publish_markers(publisher, frames, stamp, frame_id)
             except Exception as error:  # the next job is a fresh try; the thread goes on
-                self._report_error("marker_thread", error)
+                self.report_error("marker_thread", error)
 
     def _publish_markers(self, publisher, frames, stamp, frame_id):
         """One Marker per garment of `frames` {name: (vertices, faces)} on `publisher()` (looked up under the lock:
         None once the publisher is gone)."""
         for i, (name, (vertices, faces)) in enumerate(frames.items()):
             marker = make_marker(vertices, faces, name, i, frame_id, stamp, MARKER_COLORS[i % len(MARKER_COLORS)])
-            with self._lock:
+            with self.publish_lock:
                 pub = publisher()
                 if pub is not None:
                     pub.publish(marker)
@@ -676,13 +679,6 @@ class AgentDressNode(Node):
             self.worker.stop()
             self.inside.stop()
         return super().destroy_node()
-
-
-def _check_crowd_models(config: dict) -> None:
-    """A crowd's agents run AgentDress synthesis (their levels of detail are engine forks): no other model."""
-    if config["agents"] and any(m != GARMENT_MODELS[0] for m in config["garment_models"].values()):
-        raise ParameterError(f"garment_models: a crowd (agents) runs AgentDress synthesis only; "
-                             f"{config['garment_models']} needs a single-agent node")
 
 
 def set_realtime_priority(priority: int, logger) -> bool:

@@ -16,22 +16,11 @@ import numpy as np
 
 from ..body import REFERENCE_SHAPE
 from ..display.models import dress_for_display
+from ..scene.garments import GarmentSpec
 from ..models.garment_models import GarmentDatabaseError, make_body_model, make_garment_model
 
 __all__ = ["GarmentSpec", "ModelSet", "ModelWorker", "OutputGuard", "TickStats", "build_model_set", "inherit_topology",
            "scene_key"]
-
-
-@dataclass(frozen=True)
-class GarmentSpec:
-    """What to run for one garment: template name, vertex budget (None: template default), database (None: none),
-    engine knobs."""
-
-    name: str
-    vertices: int | None = None
-    database: str | None = None
-    engine: tuple = ()  # EngineConfig overrides ((field, value), ...) for a garment with a database
-    model: str = "agentdress"  # or "santesteban" (params.GARMENT_MODELS), for a garment with a database
 
 
 @dataclass(frozen=True)
@@ -67,11 +56,7 @@ def _build_garment(spec: GarmentSpec, body, beta, skinned_fallback: bool, warnin
         warnings.append(f"garment {spec.name!r}: the vertex budget {spec.vertices} applies to skinned templates; "
                         f"the database {spec.database} fixes its own vertex count")
     try:
-        engine_config = None
-        if spec.database and spec.engine:
-            from ..engine.config import EngineConfig
-
-            engine_config = EngineConfig(**dict(spec.engine))
+        engine_config = spec.engine.config() if spec.database and spec.engine else None
         return make_garment_model(spec.name, spec.database, spec.vertices, body, beta, engine_config, spec.model)
     except GarmentDatabaseError as error:
         if not skinned_fallback:
@@ -87,7 +72,7 @@ def build_model_set(scene: SceneSpec, body, previous: ModelSet | None = None) ->
     models, specs, warnings, clamped = {}, {}, [], False
     same_shape = previous is not None and previous.scene.beta == scene.beta
     # the body's spec names the garments that cover it: its topology changes with them
-    covering = GarmentSpec("body", engine=(("covered_by", tuple(g.name for g in scene.garments)),))
+    covering = GarmentSpec("body", covered_by=tuple(g.name for g in scene.garments))
     wanted = list(scene.garments) + ([covering] if scene.publish_body else [])
     for spec in wanted:
         old = previous.models.get(spec.name) if previous is not None else None

@@ -4,9 +4,10 @@ skip, and the frame-budget scheduler (scheduler). `ros/` maps topics and paramet
 rclpy."""
 from .garments import AgentGarment, GarmentLibrary, GarmentSpec
 from .lod import DEFAULT_TIERS, LodPolicy, Tier, Viewer, parse_tier, parse_tiers
-from .scene import Agent, AgentSpec, PoseState, Scene, SceneConfig, TickReport
+from .pose import InputRejected, PoseInput
+from .scene import Agent, AgentSpec, Scene, SceneConfig, TickReport
 from .scheduler import Candidate, Decision, schedule
 
 __all__ = ["DEFAULT_TIERS", "Agent", "AgentGarment", "AgentSpec", "Candidate", "Decision", "GarmentLibrary",
-           "GarmentSpec", "LodPolicy", "PoseState", "Scene", "SceneConfig", "Tier", "TickReport", "Viewer",
-           "parse_tier", "parse_tiers", "schedule"]
+           "GarmentSpec", "InputRejected", "LodPolicy", "PoseInput", "Scene", "SceneConfig", "Tier", "TickReport",
+           "Viewer", "parse_tier", "parse_tiers", "schedule"]

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..body import REFERENCE_SHAPE
+from ..engine.config import EngineKnobs
 from ..motion.skeleton import NUM_BONES
 
 __all__ = ["AgentGarment", "GarmentLibrary", "GarmentSpec"]
@@ -22,13 +23,17 @@ __all__ = ["AgentGarment", "GarmentLibrary", "GarmentSpec"]
 
 @dataclass(frozen=True)
 class GarmentSpec:
-    """One garment of an agent: template name, vertex budget of a skinned template (None: default), database path
-    (None: the skinned template), engine knobs ((field, value), ...) of a database garment."""
+    """What to run for one garment of an agent: template name, vertex budget of a skinned template (None: the
+    template's default), database path (None: the skinned template), the engine knobs and model ("agentdress" or
+    "santesteban", ros.params.GARMENT_MODELS) of a database garment, and for the body the garments covering it (its
+    displayed faces change with them)."""
 
     name: str
     vertices: int | None = None
     database: str | None = None
-    engine: tuple = ()
+    engine: EngineKnobs = EngineKnobs()
+    model: str = "agentdress"
+    covered_by: tuple = ()
 
 
 class GarmentLibrary:
@@ -55,15 +60,29 @@ class GarmentLibrary:
                 if spec.name == "body":
                     model = self._make_body(self.body)
                 else:
-                    engine_config = None
-                    if spec.database and spec.engine:
-                        from ..engine.config import EngineConfig
-
-                        engine_config = EngineConfig(**dict(spec.engine))
+                    engine_config = spec.engine.config() if spec.database and spec.engine else None
                     model = self._make(spec.name, spec.database, spec.vertices, self.body, REFERENCE_SHAPE,
-                                       engine_config)
+                                       engine_config, spec.model)
                 self._models[spec] = model
             return model
+
+    def covered_body(self, garments: tuple):
+        """The shared body model without the faces that `garments` (GarmentSpecs) cover, the band kept under their
+        edges sunk: the single agent's masking (display.models.dress_for_display), made once per set of garments.
+        Raises what the makers raise."""
+        key = ("body", garments)
+        with self._lock:
+            model = self._models.get(key)
+        if model is None:
+            from ..display.models import dress_for_display
+
+            models = {g.name: self.get(g) for g in garments}
+            equal_layers = {name: 0 for name in models}  # the garments are not layered here: only the body is made
+            model = dress_for_display({**models, "body": self.get(GarmentSpec("body"))}, self.body,
+                                      equal_layers)["body"]
+            with self._lock:
+                model = self._models.setdefault(key, model)
+        return model
 
     def fitted(self, spec: GarmentSpec, beta, garment: "AgentGarment") -> bool:
         """Fit `garment` (an AgentGarment of `spec`) to beta, sharing the shape state of an earlier agent fitted to
@@ -111,13 +130,13 @@ class AgentGarment:
                 if tier.kind == "skinned":
                     self._levels.append(("skinned", self.base))
                 else:
-                    key = tuple(tier.engine)
-                    if not self.base.can_fork_pose_model(dict(key).get("pose_model", self.base.config.pose_model)):
-                        key = tuple((k, v) for k, v in key if k != "pose_model")  # a fold: the agent's model stays
+                    key = tier.engine
+                    if not self.base.can_fork_pose_model(key.get("pose_model", self.base.config.pose_model)):
+                        key = key.without("pose_model")  # a fold: the agent's model stays
                     if key not in forks:
-                        forks[key] = self.base.fork(**dict(key)) if key else self.base
+                        forks[key] = self.base.fork(**key.as_dict()) if key else self.base
                     self._levels.append(("synthesis", forks[key]))
-            self._engines = list(forks.values()) + ([self.base] if () not in forks else [])
+            self._engines = list(forks.values()) + ([self.base] if EngineKnobs() not in forks else [])
         else:  # a skinned template: every tier is the same model
             self.base = shared.clone()
             self._engines = []

@@ -11,9 +11,10 @@ A tier is one line of text, so a list of them is a plain ROS string-array parame
     "distant inf skinned every=6"                        beyond: dressed every sixth tick (15 Hz at 90 Hz)
 
 `<name> <max distance in m | inf> <synthesis | skinned> [key=value ...]`: keys are the engine's per-frame knobs
-(`Engine.FORK_FIELDS`: neighbors, penetration, projection (0 only: off), decay, damping, power, pose_model (where
-neither the agent's nor the tier's folds anchor residuals; kept otherwise)) for synthesis tiers, and `every=n` for
-any tier. Tiers are ordered by distance; the last one must reach `inf`.
+(engine.config.PER_FRAME_KNOBS, read by EngineKnobs.parse like the node's `engine` parameter: neighbors,
+penetration, projection (0 only: off), decay, damping, power, pose_model (where neither the agent's nor the tier's
+folds anchor residuals; kept otherwise)) for synthesis tiers, and `every=n` for any tier. Tiers are ordered by
+distance; the last one must reach `inf`.
 """
 from __future__ import annotations
 
@@ -22,13 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..engine.config import PER_FRAME_KNOBS, EngineKnobs
+
 __all__ = ["DEFAULT_TIERS", "LodPolicy", "Tier", "Viewer", "parse_tier", "parse_tiers", "quaternion_forward"]
 
-#: Engine knobs a tier may set, with their coercion (Engine.FORK_FIELDS).
-TIER_ENGINE_FIELDS = {"neighbors": int, "penetration": bool, "projection": int, "decay": bool, "damping": float,
-                      "power": float, "pose_model": str}
-#: The least value of each integer knob (projection=0 turns the body projection off).
-TIER_INT_LEAST = {"neighbors": 1, "projection": 0}
 TIER_KINDS = ("synthesis", "skinned")
 
 
@@ -37,11 +35,11 @@ class Tier:
     name: str
     max_distance: float  # metres; the tier holds agents closer than this (inf for the last)
     kind: str = "synthesis"  # "synthesis" (the engine) | "skinned" (the fitted garment, skinned)
-    engine: tuple = ()  # ((field, value), ...) engine fork overrides of a synthesis tier
+    engine: EngineKnobs = EngineKnobs()  # engine fork overrides of a synthesis tier
     every: int = 1  # dress on every n-th tick only (a lower pose rate for far agents)
 
     def text(self) -> str:
-        extra = [f"{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in self.engine]
+        extra = self.engine.words()
         extra += [f"every={self.every}"] if self.every != 1 else []
         return " ".join([self.name, "inf" if math.isinf(self.max_distance) else f"{self.max_distance:g}",
                          self.kind] + extra)
@@ -50,29 +48,6 @@ class Tier:
 DEFAULT_TIER_TEXT = ("near 3 synthesis",
                      "mid 8 synthesis neighbors=2 penetration=false projection=0 pose_model=examples",
                      "far 20 skinned", "distant inf skinned every=6")
-
-
-def _value(key: str, text: str):
-    kind = TIER_ENGINE_FIELDS[key]
-    if kind is str:
-        from ..engine.pose_models import POSE_MODELS  # the only text knob
-
-        if text not in POSE_MODELS:
-            raise ValueError(f"{key} must be one of {', '.join(sorted(POSE_MODELS))}, got {text!r}")
-        return text
-    if kind is bool:
-        if text.lower() not in ("true", "false"):
-            raise ValueError(f"{key} must be true or false, got {text!r}")
-        return text.lower() == "true"
-    try:
-        value = kind(text)
-    except ValueError:
-        raise ValueError(f"{key}: {text!r} is not {'an integer' if kind is int else 'a number'}") from None
-    if kind is int and value < TIER_INT_LEAST[key]:
-        raise ValueError(f"{key} must be >= {TIER_INT_LEAST[key]}, got {value}")
-    if kind is float and not math.isfinite(value):
-        raise ValueError(f"{key} must be finite, got {text!r}")
-    return value
 
 
 def parse_tier(text: str) -> Tier:
@@ -90,20 +65,25 @@ def parse_tier(text: str) -> Tier:
             raise ValueError(f"max distance must be > 0, got {distance}")
         if kind not in TIER_KINDS:
             raise ValueError(f"kind must be one of {', '.join(TIER_KINDS)}, got {kind!r}")
-        engine, every = {}, 1
+        knobs, every = [], 1
         for item in extra:
             key, sep, value = item.partition("=")
             if not sep or not value:
                 raise ValueError(f"{item!r} must look like key=value")
             if key == "every":
-                every = _value("neighbors", value)  # a positive integer
-            elif key in TIER_ENGINE_FIELDS:
+                try:
+                    every = int(value)
+                except ValueError:
+                    raise ValueError(f"every: {value!r} is not an integer") from None
+                if every < 1:
+                    raise ValueError(f"every must be >= 1, got {every}")
+            elif key in PER_FRAME_KNOBS:
                 if kind != "synthesis":
                     raise ValueError(f"{key} applies to synthesis tiers only")
-                engine[key] = _value(key, value)
+                knobs.append(item)
             else:
-                raise ValueError(f"unknown key {key!r}; one of every, {', '.join(TIER_ENGINE_FIELDS)}")
-        return Tier(name, max_distance, kind, tuple(sorted(engine.items())), every)
+                raise ValueError(f"unknown key {key!r}; one of every, {', '.join(PER_FRAME_KNOBS)}")
+        return Tier(name, max_distance, kind, EngineKnobs.parse(knobs, per_frame=True), every)
     except ValueError as error:
         raise ValueError(f"tier {text!r}: {error}") from None
 

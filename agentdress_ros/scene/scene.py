@@ -2,7 +2,7 @@
 
     scene = Scene(body, SceneConfig(budget_ms=8.0))
     scene.request_agent(AgentSpec("alice", garments, beta))   # built on the worker thread, installed by a tick
-    scene.agents["alice"].pose.accept(...)                    # the pose input (ros.inputs.PoseInput or PoseState)
+    scene.agents["alice"].pose.accept(...)                    # the pose input (scene.pose.PoseInput)
     scene.set_viewer(Viewer.from_pose(position, quaternion))  # optional
     report = scene.tick(publish)   # publish(agent, {garment: (V, 3) float32}, stamp_ns) per dressed agent
 
@@ -26,9 +26,10 @@ from ..body import REFERENCE_SHAPE
 from ..motion.skeleton import NUM_BONES
 from .garments import AgentGarment, GarmentLibrary, GarmentSpec
 from .lod import LodPolicy, Viewer
+from .pose import PoseInput
 from .scheduler import Candidate, schedule
 
-__all__ = ["AgentSpec", "PoseState", "Scene", "SceneConfig", "TickReport"]
+__all__ = ["AgentSpec", "Scene", "SceneConfig", "TickReport"]
 
 #: Height of the hips above the root translation's origin (the rest Hips sit ~0.9 m up): the agent's centre.
 HIPS_HEIGHT = 0.9
@@ -47,7 +48,8 @@ MARGIN_EVERY = 10  # ticks between updates of the margin
 class AgentSpec:
     """What an agent wears and where its frame sits: garments (in publishing order), initial shape, frame_id,
     origin (x, y, z of its frame in the scene's frame, for distances), extra_cost_ms (an artificial per-frame cost:
-    tests and benchmarks of the budget), publish_body (also dress the body)."""
+    tests and benchmarks of the budget), publish_body (also dress the body), skinned_fallback (a garment whose
+    database is missing or unusable is dressed with its skinned template, reported through on_error)."""
 
     name: str
     garments: tuple = (GarmentSpec("tshirt"),)
@@ -56,6 +58,7 @@ class AgentSpec:
     origin: tuple = (0.0, 0.0, 0.0)
     extra_cost_ms: float = 0.0
     publish_body: bool = False
+    skinned_fallback: bool = False
 
 
 @dataclass(frozen=True)
@@ -68,30 +71,6 @@ class SceneConfig:
     near_wait: int = 2  # a protected agent may be deferred this many ticks in a row when they alone overfill one
     fade_frames: int = 6
     cost_smoothing: float = 0.2  # weight of a new measurement in a level's cost estimate
-
-
-class PoseState:
-    """A minimal pose input (the node uses ros.inputs.PoseInput, which checks messages): rotvecs, root translation,
-    version, stamp."""
-
-    def __init__(self):
-        self.values = np.zeros(3 * NUM_BONES + 3)
-        self.version = 0
-        self.stamp_ns = 0
-
-    def set(self, rotvecs, root_translation=(0.0, 0.0, 0.0), stamp_ns: int = 0):
-        self.values[: 3 * NUM_BONES] = np.asarray(rotvecs, dtype=np.float64).reshape(-1)
-        self.values[3 * NUM_BONES:] = np.asarray(root_translation, dtype=np.float64)
-        self.version += 1
-        self.stamp_ns = int(stamp_ns)
-
-    @property
-    def rotvecs(self) -> np.ndarray:
-        return self.values[: 3 * NUM_BONES].reshape(NUM_BONES, 3).copy()
-
-    @property
-    def root_translation(self) -> np.ndarray:
-        return self.values[3 * NUM_BONES:].copy()
 
 
 class Agent:
@@ -113,6 +92,7 @@ class Agent:
         self.last_dressed = 0.0  # time.monotonic() of the last one
         self.shape_generation = 0
         self.beta = tuple(float(b) for b in spec.beta)
+        self.specs = {}  # garment -> the GarmentSpec it was made from (a skinned fallback's, not the agent's)
 
     def centre(self) -> np.ndarray:
         root = self.pose.values[3 * NUM_BONES:]
@@ -207,7 +187,7 @@ class Scene:
     """Agents dressed on the caller's thread; agents built and shapes refitted on one worker thread."""
 
     def __init__(self, body, config: SceneConfig = SceneConfig(), library: GarmentLibrary | None = None,
-                 pose_factory=PoseState, on_error=None, prepare=None, clock=time.perf_counter):
+                 pose_factory=PoseInput, on_error=None, prepare=None, clock=time.perf_counter):
         self.body, self.config = body, config
         self.clock = clock  # seconds, for the budget and the measured costs (a test may stop it)
         self.library = library if library is not None else GarmentLibrary(body)
@@ -240,17 +220,36 @@ class Scene:
     def build_agent(self, spec: AgentSpec) -> Agent:
         """Build an agent now (loads shared garment data on first use). Raises what the garment makers raise."""
         tiers = self.config.lod.tiers
-        specs = list(spec.garments) + ([GarmentSpec("body")] if spec.publish_body else [])
-        garments, clamped = {}, False
+        covering = tuple(g.name for g in spec.garments)
+        specs = list(spec.garments) + ([GarmentSpec("body", covered_by=covering)] if spec.publish_body else [])
+        garments, used, clamped = {}, {}, False
         for g in specs:
-            garment = garments[g.name] = AgentGarment(self.library.get(g), tiers,
-                                                      0 if g.name == "body" else self.config.fade_frames)
-            clamped |= self.library.fitted(g, spec.beta, garment)
+            if g.covered_by:  # the body, masked by the garments it wears as the single agent's is
+                shared, used[g.name] = self.library.covered_body(tuple(used[n] for n in g.covered_by)), g
+            else:
+                shared, used[g.name] = self._shared(g, spec.skinned_fallback)
+            garment = garments[g.name] = AgentGarment(shared, tiers, 0 if g.name == "body" else self.config.fade_frames)
+            clamped |= self.library.fitted(used[g.name], spec.beta, garment)
         agent = Agent(spec, garments, self.pose_factory(), 0, clamped)
+        agent.specs = used
         agent.beta = tuple(float(b) for b in spec.beta)
         with self._cond:
             agent.slot, self._slots = self._slots, self._slots + 1
         return agent
+
+    def _shared(self, spec: GarmentSpec, fallback: bool):
+        """(the library's model of `spec`, the spec it was made from): the skinned template's when the database
+        cannot be used and `fallback` is set."""
+        from ..models.garment_models import GarmentDatabaseError
+
+        try:
+            return self.library.get(spec), spec
+        except GarmentDatabaseError as error:
+            if not fallback:
+                raise
+            self.on_error(f"{error}; using the skinned {spec.name} template instead (skinned_fallback)")
+            spec = GarmentSpec(spec.name, spec.vertices)
+            return self.library.get(spec), spec
 
     def request_agent(self, spec: AgentSpec):
         """Add (or rebuild) an agent off the frame path; a tick installs it when built."""
@@ -305,9 +304,8 @@ class Scene:
                 else:
                     agent = self.agents.get(name)
                     if agent is not None and agent.beta != arg:  # a repeated shape costs nothing
-                        specs = {g.name: g for g in agent.spec.garments}
-                        specs.setdefault("body", GarmentSpec("body"))
-                        agent.clamped = any([self.library.fitted(specs[n], arg, g) for n, g in agent.garments.items()])
+                        agent.clamped = any([self.library.fitted(agent.specs[n], arg, g)
+                                             for n, g in agent.garments.items()])
                         agent.beta = arg
                         agent.shape_generation += 1
                         agent.dirty = True
