@@ -48,8 +48,9 @@ def split_shares(database, folder, radii=RADII, engine: dict | None = None, prog
             candidates = {"ground truth": drapes[f"test_{p:04d}_{k:02d}"][0]}
             if outputs is not None:
                 candidates["node default"] = outputs[p]
+            test = BodyInside(posed, faces)  # one winding field per case; the radius only changes the split
             for r in radii:
-                test = BodyInside(posed, faces, radius=r)
+                test.radius = r
                 for name, vertices in candidates.items():
                     report = test.report(vertices)
                     counts[name][r] += (report["inside_count"], report["overlap_count"], report["truly_inside_count"])
