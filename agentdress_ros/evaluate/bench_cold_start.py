@@ -3,14 +3,16 @@
 Each repeat starts a new Python process (one BLAS thread, numba's cache warm after the first) that imports the
 engine, loads the body and the database with the node's default engine knobs for the garment (ros.params
 PARAMETERS["engine"]), and synthesises one frame. Reported (JSON): per repeat import_s, load_s (body + database +
-engine), first_frame_s, total_s (inside the process) and process_s (interpreter start to exit, measured outside);
-the median of each over the repeats after the first (the first may compile numba kernels into the cache).
+engine), first_frame_s, total_s (inside the process), process_s (interpreter start to exit, measured outside) and
+cpu_s (the process' user + system CPU seconds: what it costs whatever else shares the core); the median of each over
+the repeats after the first (the first may compile numba kernels into the cache).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -42,6 +44,11 @@ def node_engine_knobs(garment: str) -> dict:
     return dict(engine_for(parse_engine(PARAMETERS["engine"].default), garment))
 
 
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def bench_cold_start(database: str, garment: str, repeats: int = 5) -> dict:
     if repeats < 2:
         raise ValueError(f"repeats must be at least 2 (the first run may fill numba's cache), got {repeats}")
@@ -51,11 +58,12 @@ def bench_cold_start(database: str, garment: str, repeats: int = 5) -> dict:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     runs = []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), _children_cpu_s()
         out = subprocess.run([sys.executable, "-c", _SCRIPT, database, json.dumps(knobs)], capture_output=True,
                              text=True, check=True, env=env)
         run = json.loads(out.stdout.strip().splitlines()[-1])
         run["process_s"] = time.perf_counter() - start
+        run["cpu_s"] = _children_cpu_s() - cpu
         runs.append({k: round(v, 3) for k, v in run.items()})
     warm = runs[1:]
     return {"benchmark": "cold-start", "database": database, "garment": garment, "engine": knobs,
