@@ -72,15 +72,15 @@ bench-node: setup
 # images; a no-op when they are up to date), then rerun both trade tables from the packed
 # ground truth.
 regressor: setup-test
-	$(BIN)/agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz \
+	$(BIN)/agentdress lab regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz \
 		--settled data/tshirt_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5 --parts
-	$(BIN)/agentdress regressor --database data/trousers_default.h5 --pack data/trousers_sequences.npz \
+	$(BIN)/agentdress lab regressor --database data/trousers_default.h5 --pack data/trousers_sequences.npz \
 		--settled data/trousers_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5 --parts
-	$(BIN)/agentdress regressor --database data/longsleeve_default.h5 --pack data/tshirt_sequences.npz \
+	$(BIN)/agentdress lab regressor --database data/longsleeve_default.h5 --pack data/tshirt_sequences.npz \
 		--settled data/longsleeve_rest.npz --settled-copies 1 --static-only --examples 1 --alpha 3 --mirror --ensemble 5 --parts
-	$(BIN)/agentdress recurrent --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
-	$(BIN)/agentdress recurrent --database data/trousers_default.h5 --pack data/trousers_sequences.npz
-	$(BIN)/agentdress santesteban --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
-	$(BIN)/agentdress santesteban --database data/trousers_default.h5 --pack data/trousers_sequences.npz
+	$(BIN)/agentdress lab recurrent --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+	$(BIN)/agentdress lab recurrent --database data/trousers_default.h5 --pack data/trousers_sequences.npz
+	$(BIN)/agentdress lab santesteban --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+	$(BIN)/agentdress lab santesteban --database data/trousers_default.h5 --pack data/trousers_sequences.npz
 	$(BIN)/agentdress eval --database data/tshirt_default.h5 --out docs/eval --workers 0 --quiet
 	$(BIN)/agentdress eval --database data/trousers_default.h5 --out docs/eval/trousers --workers 0 --quiet

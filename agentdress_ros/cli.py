@@ -1,17 +1,22 @@
-"""The `agentdress` command: demos, the viewer, database builds and benchmarks (JSON), one subcommand each.
+"""The `agentdress` command: the user's commands, and the experiment commands under `agentdress lab`.
 
-`agentdress bench node ...` (latency, rate and CPU of the node over real DDS) takes the options of
-agentdress_ros.evaluate.bench_node, `agentdress bench crowd ...` those of agentdress_ros.evaluate.bench_crowd (one
-node dressing N agents), `agentdress bench sequence ...` those of agentdress_ros.evaluate.bench_sequence (the dynamic
-ground truth's cost per mocap frame), `agentdress bench pose-models ...` those of
-agentdress_ros.evaluate.bench_pose_models (the engine's cost per frame with each pose model on a real database);
-`agentdress bench body|synth` those listed by `agentdress bench -h`. `agentdress demo
---agents N ...` publishes a crowd (agentdress_ros.ros.crowd_demo) instead of one agent.
+`agentdress --help` lists what a user needs: run the node with the demo and the viewer, drive it, benchmark it,
+evaluate a database and build one. `agentdress lab --help` lists the experiment commands (ground-truth studies,
+dynamic sequences, the trainers of the learned pose models). The node itself is `agentdress_node`.
 """
 from __future__ import annotations
 
 import argparse
 import sys
+
+TOP_HELP = """\
+Real-time clothing for virtual humans on a CPU (a ROS 2 node and its tools).
+
+  make run                  the node, a walking agent and the web viewer together
+  agentdress_node           the node alone (ROS parameters: README "Parameters")
+
+Experiment commands (ground truth, sequences, trainers): agentdress lab --help
+"""
 
 
 def _bench(args) -> int:
@@ -27,32 +32,44 @@ def _bench(args) -> int:
     return 0
 
 
-# Subcommands whose options are parsed by the module they run.
+# User commands whose options are parsed by the module they run: (name, module, function, one-line summary).
 PASSTHROUGH = (
-    ("demo", ".ros.demo", "demo_main", "publish JointState from a motion (and a shape sweep) in real time"),
-    ("view", ".ros.viewer", "view_main", "web viewer of the node's garments"),
     ("run", ".ros.run_all", "run_main", "node + demo + viewer together (what `make run` starts)"),
-    ("eval", ".evaluate.evaluate", "main", "speed vs accuracy against held-out newton drapes (trade table, plots)"),
-    ("floor", ".evaluate.floor", "main", "the ground truth's own spread: held-out cases draped along another valid "
-     "path"),
+    ("view", ".ros.viewer", "view_main", "web viewer (three.js, WebXR) of every agent and garment in the ROS graph"),
+    ("demo", ".ros.demo", "demo_main", "publish JointState from a motion (and a shape sweep); --agents N: a crowd"),
+    ("eval", ".evaluate.evaluate", "main", "accuracy and speed of a database against held-out newton drapes"),
+)
+
+# Experiment commands, `agentdress lab <name> ...`: ground-truth studies, dynamic sequences and the trainers of the
+# learned pose models (the shipped databases' `make regressor`).
+LAB_PASSTHROUGH = (
+    ("floor", ".evaluate.floor", "main", "the ground truth's own spread: held-out cases draped along another path"),
+    ("groundtruth-v3", ".evaluate.groundtruth_v3", "main", "held-out cases draped from rest along 30-, 45- and "
+     "60-frame ramps (resumable)"),
+    ("shape-oracle", ".evaluate.shape_oracle", "main", "what a perfect pose model leaves, scored against drapes made "
+     "the database's way"),
+    ("overlap-split", ".evaluate.overlap_split", "main", "inside-the-body shares split into self-overlap and truly "
+     "inside at several radii"),
     ("sequences", ".offline.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),
-    ("settle", ".offline.settled", "main", "settle dynamic training frames into static drapes (resumable) and pack them"),
-    ("regressor", ".offline.regressor", "main", "train the regressor pose model from a sequence pack into a database"),
-    ("recurrent", ".offline.recurrent", "main", "train the recurrent pose model (a GRU over the regressor's inputs) "
-     "into a database"),
-    ("santesteban", ".offline.santesteban", "main", "train Santesteban et al.'s garment model (model=santesteban) into "
-     "a database"),
-    ("shape-residual", ".offline.shape_residual", "main", "train the shape residual (engine shape_residual) from drapes "
-     "at random shapes into a database"),
+    ("settle", ".offline.settled", "main", "static drapes of training frames: settled, from rest (--start rest) or "
+     "at random shapes (--start shaped)"),
+    ("regressor", ".offline.regressor", "main", "train the regressor pose model into a database (--validate-*: "
+     "choose its data)"),
+    ("recurrent", ".offline.recurrent", "main", "train the recurrent pose model (a GRU over the regressor's inputs)"),
+    ("santesteban", ".offline.santesteban", "main", "train Santesteban et al.'s garment model into a database"),
+    ("shape-residual", ".offline.shape_residual", "main", "train the shape residual (engine shape_residual) from "
+     "drapes at random shapes"),
 )
 
 
 # `agentdress bench <name> ...` whose options the module parses: node (publisher and node processes, rates, soak),
 # crowd (one node dressing N agents, poses from another process), sequence (the dynamic ground truth's cost per mocap
-# frame and what cheaper stepping gives up), pose-models (the engine's cost per frame with each pose model).
+# frame and what cheaper stepping gives up), pose-models (the engine's cost per frame with each pose model),
+# cold-start (a fresh interpreter to the first frame on a real database).
 BENCH_PASSTHROUGH = {"node": (".evaluate.bench_node", "main"), "crowd": (".evaluate.bench_crowd", "main"),
                      "sequence": (".evaluate.bench_sequence", "main"),
-                     "pose-models": (".evaluate.bench_pose_models", "main")}
+                     "pose-models": (".evaluate.bench_pose_models", "main"),
+                     "cold-start": (".evaluate.bench_cold_start", "main")}
 
 
 def _passthrough(module: str, function: str):
@@ -104,11 +121,14 @@ def _build(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="agentdress", description=__doc__)
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(prog="agentdress", description=TOP_HELP,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True, metavar="command")
 
-    bench = commands.add_parser("bench", help="benchmarks (JSON on stdout)")
-    bench.add_argument("target", choices=["body", "synth"])
+    bench = commands.add_parser("bench", help="benchmarks, JSON on stdout: body, synth, node, crowd, pose-models, "
+                                "cold-start, sequence", description=f"body and synth take the options below; "
+                                f"{', '.join(BENCH_PASSTHROUGH)} their own (agentdress bench node --help)")
+    bench.add_argument("target", choices=["body", "synth", *BENCH_PASSTHROUGH])
     bench.add_argument("--garments", nargs="+", default=["tshirt"], help="garment templates to pose with the body")
     bench.add_argument("--vertices", type=int, default=None, help="garment vertex count (default per template)")
     bench.add_argument("--repeats", type=int, default=500)
@@ -117,10 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--cold-start", action="store_true", help="synth: also time import + JIT + load")
     bench.set_defaults(run=_bench)
 
-    for name, module, function, text in PASSTHROUGH:
-        sub = commands.add_parser(name, help=text, add_help=False)
-        sub.add_argument("rest", nargs=argparse.REMAINDER)
-        sub.set_defaults(run=_passthrough(module, function))
+    _add_passthrough(commands, PASSTHROUGH)
 
     build = commands.add_parser("build", help="build a garment database from newton drapes (resumable)")
     build.add_argument("--garment", default="tshirt", help="garment template (tshirt, longsleeve, trousers)")
@@ -154,11 +171,23 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--out", required=True, help="database file to write (.h5)")
     build.set_defaults(run=_build)
 
-    demo = commands.add_parser("demo-png", help="render dressed, posed bodies at three shapes to a PNG")
+    demo = commands.add_parser("demo-png", help="dressed, posed bodies at three shapes in one PNG (no ROS)")
     demo.add_argument("--out", default="out/dressed_bodies.png")
     demo.add_argument("--motion", default="walk", help="procedural motion or a CMU .bvh file to take poses from")
     demo.set_defaults(run=_demo_png)
+
+    lab = commands.add_parser("lab", help="experiment commands: ground-truth studies, sequences, trainers",
+                              description="Experiment commands: the ground truth's studies, the dynamic sequences "
+                              "and the trainers of the learned pose models (docs/building.md, docs/notes/).")
+    _add_passthrough(lab.add_subparsers(dest="lab_command", required=True, metavar="command"), LAB_PASSTHROUGH)
     return parser
+
+
+def _add_passthrough(commands, table) -> None:
+    for name, module, function, text in table:
+        sub = commands.add_parser(name, help=text, add_help=False)
+        sub.add_argument("rest", nargs=argparse.REMAINDER)
+        sub.set_defaults(run=_passthrough(module, function))
 
 
 def main(argv=None) -> int:
@@ -169,9 +198,11 @@ def main(argv=None) -> int:
         from .ros.crowd_demo import crowd_main
 
         return crowd_main(argv[1:])
-    for name, module, function, _ in PASSTHROUGH:
-        if argv[:1] == [name]:  # argparse's REMAINDER would reject a leading --option
-            return _passthrough(module, function)(argparse.Namespace(rest=argv[1:]))
+    for prefix, table in (([], PASSTHROUGH), (["lab"], LAB_PASSTHROUGH)):
+        for name, module, function, _ in table:
+            command = [*prefix, name]
+            if argv[:len(command)] == command:  # argparse's REMAINDER would reject a leading --option
+                return _passthrough(module, function)(argparse.Namespace(rest=argv[len(command):]))
     args = build_parser().parse_args(argv)
     return args.run(args)
 

@@ -172,5 +172,5 @@ def test_a_database_without_the_group_names_the_file(tmp_path, body, database):
     from agentdress_ros.models.garment_models import GarmentDatabaseError, make_garment_model
 
     path = write_database(tmp_path / "plain.h5", replace(database, santesteban=None))
-    with pytest.raises(GarmentDatabaseError, match=f"{path}.*garment_model/santesteban.*agentdress santesteban"):
+    with pytest.raises(GarmentDatabaseError, match=f"{path}.*garment_model/santesteban.*agentdress lab santesteban"):
         make_garment_model("tshirt", path, body=body, model="santesteban")

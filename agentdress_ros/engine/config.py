@@ -49,7 +49,7 @@ class EngineConfig:
         f(beta0, theta_s) - pose_model(theta_s) to its shape delta, so synthesis stays exact at the anchors (Eq. 4
         with the taylor="augmented" form only; no cost per frame).
     max_root_translation: |root translation| components are clamped to this (metres) so float32 output stays finite.
-    shape_residual: add the database's learned shape residual (shape_model/residual, `agentdress shape-residual`)
+    shape_residual: add the database's learned shape residual (shape_model/residual, `agentdress lab shape-residual`)
         to the blended shape delta every frame: what synthesis missed at other body shapes along the training
         clips, from pose and phenotypes (taylor="augmented" with the shape model only; a small MLP per frame).
     """

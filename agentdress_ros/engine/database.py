@@ -47,7 +47,7 @@ at run time. A held-out shape that changes four phenotypes at once is reproduced
 
 The regressor (Santesteban et al. 2019, Sec. 3-4) is f(beta0, theta) in the rest frame: the garment unposed with
 beta0's bones (their Eq. 5), reduced by PCA, regressed from the pose by an MLP (hidden layers `activation`, the last
-linear). Trained offline (`agentdress regressor`, offline.regressor); evaluated with numpy (engine.pose_models). A
+linear). Trained offline (`agentdress lab regressor`, offline.regressor); evaluated with numpy (engine.pose_models). A
 parts regressor (info "parts") is the same arrays holding one PCA and MLP per garment region side by side: no weight
 joins two parts, and each part's basis rows are its own PCA times its blend weight on its own vertices (so they are
 orthonormal only within one part).

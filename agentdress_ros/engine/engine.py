@@ -274,7 +274,7 @@ class Engine:
         if config.shape_residual:
             if db.shape_residual is None:
                 raise ValueError("shape_residual needs a database with shape_model/residual (train it with "
-                                 "`agentdress shape-residual`)")
+                                 "`agentdress lab shape-residual`)")
             self._shape_residual = RegressorDecoder(db.shape_residual, self.dtype)
 
         self.pose_model_context = context

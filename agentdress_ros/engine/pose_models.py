@@ -392,7 +392,7 @@ class RegressorPoseModel:
         reg = context.db.regressor
         if reg is None:
             raise ValueError("pose model 'regressor' needs a database with pose_model/regressor (train one with "
-                             "`agentdress regressor`)")
+                             "`agentdress lab regressor`)")
         self.decoder = RegressorDecoder(reg, context.dtype)
 
     def fork(self, context: PoseModelContext) -> "RegressorPoseModel":
@@ -428,7 +428,8 @@ class RecurrentPoseModel:
         reg, rec = context.db.regressor, context.db.recurrent
         if reg is None or rec is None:
             raise ValueError("pose model 'recurrent' needs a database with pose_model/regressor and "
-                             "pose_model/recurrent (train them with `agentdress regressor` and `agentdress recurrent`)")
+                             "pose_model/recurrent (train them with `agentdress lab regressor` and "
+                             "`agentdress lab recurrent`)")
         self.decoder = RegressorDecoder(reg, context.dtype)
         self.input_weights = np.asarray(rec.input_weights, dtype=np.float64)
         self.state_weights = np.asarray(rec.state_weights, dtype=np.float64)

@@ -7,7 +7,7 @@
 
 T is the database's rest garment (beta0), W_g its skinning weights (interpolated from the closest body triangle, as
 their Eq. 3 does); R_G and R_L are the two regressors of the database's garment_model/santesteban group (trained
-by `agentdress santesteban`, offline.santesteban), evaluated with numpy: no learning library at run time. R_G runs
+by `agentdress lab santesteban`, offline.santesteban), evaluated with numpy: no learning library at run time. R_G runs
 once per shape. The post-process binds each garment vertex to its closest body vertex once per shape (on the
 shape's rest pose, as AgentDress Eq. 10 does) instead of searching the posed body every frame.
 """
@@ -70,7 +70,7 @@ class SantestebanModel:
     def __init__(self, db: Database, body, margin: float = PUSH_MARGIN, name: str | None = None, path=None):
         if db.santesteban is None:
             raise ValueError("model 'santesteban' needs a database with garment_model/santesteban (train it with "
-                             "`agentdress santesteban`)")
+                             "`agentdress lab santesteban`)")
         self.db, self.body, self.margin = db, body, float(margin)
         self.name, self.path = name or db.garment, path
         self.faces = np.ascontiguousarray(db.faces, dtype=np.int32)

@@ -1,4 +1,4 @@
-"""`agentdress floor`: how far apart two equally valid newton drapes of the same held-out case lie.
+"""`agentdress lab floor`: how far apart two equally valid newton drapes of the same held-out case lie.
 
 A static drape is one equilibrium among several (a fold goes left or right, a sleeve settles a little higher), and
 which one the simulation reaches depends on the path it took. The held-out set's drapes took one path (for v2, a
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
 
     from .testset import default_cache
 
-    parser = argparse.ArgumentParser(prog="agentdress floor", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="agentdress lab floor", description=__doc__.split("\n")[0])
     parser.add_argument("--database", default="data/tshirt_default.h5")
     parser.add_argument("--cache", default=None, help="the v2 held-out set's cache (default: "
                         "out/eval-cache-v2/<database file name without .h5>)")

@@ -263,7 +263,7 @@ def _load_santesteban_model(name: str, path: Path, body: AnnyBody, beta):
     db = _read_database(name, path)
     if db.santesteban is None:
         raise GarmentDatabaseError(f"garment {name!r}: database {path} has no garment_model/santesteban group "
-                                   "(model santesteban): train it with `agentdress santesteban`")
+                                   "(model santesteban): train it with `agentdress lab santesteban`")
     model = SantestebanModel(db, body, name=name, path=path)
     model.set_shape(beta)
     return model

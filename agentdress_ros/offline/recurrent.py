@@ -1,6 +1,6 @@
 """Training of the `recurrent` pose model (engine.pose_models.RecurrentPoseModel), offline, with JAX (build only).
 
-    agentdress recurrent --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+    agentdress lab recurrent --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 
 Santesteban et al. 2019 learn their wrinkle regressor R_L as a GRU over the pose sequence. Here a small GRU (H
 units) runs over the `regressor`'s standardised inputs and adds a correction to its standardised outputs (the PCA
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     from .regressor import RegressorSettings
     from .sequences import load_sequence_pack
 
-    parser = argparse.ArgumentParser(prog="agentdress recurrent", description=__doc__,
+    parser = argparse.ArgumentParser(prog="agentdress lab recurrent", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--database", required=True, help="a database with pose_model/regressor")
     parser.add_argument("--pack", required=True, help="the garment's beta0 sequence pack")
@@ -154,7 +154,7 @@ def main(argv=None) -> int:
     settings = RecurrentSettings(hidden=args.hidden, steps=args.steps, seed=args.seed)
     db = read_database(args.database)
     if db.regressor is None:
-        raise SystemExit(f"{args.database}: no pose_model/regressor to add memory to; run `agentdress regressor`")
+        raise SystemExit(f"{args.database}: no pose_model/regressor to add memory to; run `agentdress lab regressor`")
     runs = sequences(load_sequence_pack(args.pack), db, RegressorSettings().max_offset)
     recurrent, report = train(db, runs, settings)
     store_in_database(args.database, lambda h5: write_recurrent(h5, recurrent))

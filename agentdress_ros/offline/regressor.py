@@ -1,6 +1,6 @@
 """Training of the `regressor` pose model (Santesteban et al. 2019, Sec. 3-4, at beta0), offline, with scikit-learn.
 
-    agentdress regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+    agentdress lab regressor --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 
 Training data: the frames of a sequence pack (offline.sequences: each frame's garment unposed to the rest frame with
 beta0's bones, their Eq. 5) and, optionally, the database's own beta0 drapes (the anchors' and the extra pose-model
@@ -589,12 +589,12 @@ def network_settings(args) -> RegressorSettings:
 def main(argv=None) -> int:
     import argparse
 
-    parser = argparse.ArgumentParser(prog="agentdress regressor", description=__doc__,
+    parser = argparse.ArgumentParser(prog="agentdress lab regressor", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--database", required=True, help="database file to write the regressor into")
-    parser.add_argument("--pack", required=True, help="sequence pack of the training clips (agentdress sequences)")
+    parser.add_argument("--pack", required=True, help="sequence pack of the training clips (agentdress lab sequences)")
     parser.add_argument("--settled", nargs="+", default=None, help="packs of static drapes settled from the training "
-                        "frames (agentdress settle), trained on beside the pack's frames")
+                        "frames (agentdress lab settle), trained on beside the pack's frames")
     parser.add_argument("--settled-copies", type=int, default=1, help="copies of the settled drapes (with --settled)")
     parser.add_argument("--static-only", action="store_true", help="train on the static drapes only (the --settled "
                         "copies and the database's beta0 drapes), not on the pack's dynamic frames")

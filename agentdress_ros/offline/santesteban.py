@@ -1,6 +1,6 @@
 """Training of the garment model of Santesteban et al. 2019 (engine.santesteban), offline, with scikit-learn.
 
-    agentdress santesteban --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
+    agentdress lab santesteban --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz
 
 Data: the build's drapes (`<database>.drapes.npz`: every anchor pose on the 17 training shapes) and the dense beta0
 sequence pack. Every drape is unposed to the rest frame of its own shape (their Eq. 5, with that shape's skeleton):
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     from ..body import AnnyBody
     from .sequences import load_sequence_pack
 
-    parser = argparse.ArgumentParser(prog="agentdress santesteban", description=__doc__,
+    parser = argparse.ArgumentParser(prog="agentdress lab santesteban", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--database", required=True)
     parser.add_argument("--pack", required=True, help="the garment's beta0 sequence pack (data/<garment>_sequences.npz)")

@@ -1,7 +1,7 @@
 """Dynamic training sequences: every training clip simulated at beta0, per garment, resumable, on Dask, packed.
 
-    agentdress sequences --garment tshirt --clips ../shared/mocap/cmu/*.bvh --out out/sequences [--workers 1]
-    agentdress sequences --garment tshirt --clips ... --out out/sequences --pack data/tshirt_sequences.npz
+    agentdress lab sequences --garment tshirt --clips ../shared/mocap/cmu/*.bvh --out out/sequences [--workers 1]
+    agentdress lab sequences --garment tshirt --clips ... --out out/sequences --pack data/tshirt_sequences.npz
 
 With --pack, clips the pack already holds whole are not simulated again (unless their chunk folder is there), and
 the new pack keeps them beside the clips simulated here: the work of several machines or days adds up in one file.
@@ -257,7 +257,7 @@ def main(argv=None) -> int:
     from ..body.model import REFERENCE_SHAPE
     from ..sim.sequence import SequenceSettings
 
-    parser = argparse.ArgumentParser(prog="agentdress sequences", description=__doc__,
+    parser = argparse.ArgumentParser(prog="agentdress lab sequences", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--garment", default="tshirt")
     parser.add_argument("--vertices", type=int, default=1200)

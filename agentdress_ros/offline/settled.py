@@ -1,6 +1,6 @@
 """Static drapes settled from the dynamic training frames: more of the kind of cloth the held-out set holds.
 
-    agentdress settle --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz --frames 500 \
+    agentdress lab settle --database data/tshirt_default.h5 --pack data/tshirt_sequences.npz --frames 500 \
         --out data/tshirt_settled.npz [--workers 2]
 
 The held-out ground truth and the anchors are static drapes: the cloth hangs at rest on a body standing still. The
@@ -9,7 +9,7 @@ beside 9,000 moving ones. This turns `frames` of the dynamic frames (spread even
 training clips) into static drapes: the frame's garment, in the frame's pose at beta0, settles with the body held
 still (about 100 frames, 10 s at 1,200 vertices; nothing is lifted out of the body first, the cloth starts where
 the dynamic simulation left it). The result is a pack of the same format as the sequences' (offline.sequences), one
-"frame" per drape with its source clip and frame and zero speeds, which `agentdress regressor --pack` reads beside
+"frame" per drape with its source clip and frame and zero speeds, which `agentdress lab regressor --pack` reads beside
 the sequences.
 
 Each drape is one build job (offline.jobs, `warm_ramp_frames` 1: the start is the frame itself), run on the build's
@@ -250,7 +250,7 @@ def settle_pack(db_path, pack_path, out, count: int, workers: int = 2, progress:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="agentdress settle", description=__doc__,
+    parser = argparse.ArgumentParser(prog="agentdress lab settle", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--database", default="data/tshirt_default.h5")
     parser.add_argument("--pack", default="data/tshirt_sequences.npz", help="sequence pack of the training clips")

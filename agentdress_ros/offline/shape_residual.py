@@ -1,6 +1,6 @@
 """Training of the shape residual (EngineConfig.shape_residual), offline, with scikit-learn.
 
-    agentdress shape-residual --database data/trousers_default.h5 --shaped out/shaped/trousers_shaped.npz \
+    agentdress lab shape-residual --database data/trousers_default.h5 --shaped out/shaped/trousers_shaped.npz \
         --engine pose_model=regressor fold=false
 
 Why: synthesis carries each anchor's shape model to a pose through the sensitivity-weighted blend of the nearest
@@ -8,7 +8,7 @@ anchors, and each shape model is fitted on 17 shapes that vary one phenotype at 
 several at once, in a pose between the anchors, it misses what neither captures; with a perfect pose model the
 trousers' held-out error stays at the shape term's 1.46 cm (README "What the trousers' pose model costs").
 
-Data: a shaped pack (`agentdress settle --start shaped`): the training clips' poses draped at random shapes, each
+Data: a shaped pack (`agentdress lab settle --start shaped`): the training clips' poses draped at random shapes, each
 stored unposed with its own shape's bones. Target of each drape: the drape minus the engine's synthesis at the same
 shape and pose (the configuration `--engine`, the one the residual will correct), both unposed with that shape's
 bones - the frame in which the synthesis kernel adds the blended shape delta (Eq. 4), so adding the target to the
@@ -60,7 +60,7 @@ def residual_data(db, body, pack: dict, config: dict, progress: bool = True) -> 
     from .settled import shaped_offsets
 
     if "betas" not in pack:
-        raise ValueError("the pack has no per-drape shapes: make it with `agentdress settle --start shaped`")
+        raise ValueError("the pack has no per-drape shapes: make it with `agentdress lab settle --start shaped`")
     names = [str(n) for n in pack["clips"]]
     check_training_clips(names)
     engine = Engine(db, body, EngineConfig(**{**config, "shape_residual": False}))
@@ -96,10 +96,10 @@ def main(argv=None) -> int:
     from ..body import AnnyBody
     from .sequences import load_sequence_pack
 
-    parser = argparse.ArgumentParser(prog="agentdress shape-residual", description=__doc__,
+    parser = argparse.ArgumentParser(prog="agentdress lab shape-residual", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--database", required=True, help="database file to write shape_model/residual into")
-    parser.add_argument("--shaped", required=True, help="shaped pack (agentdress settle --start shaped)")
+    parser.add_argument("--shaped", required=True, help="shaped pack (agentdress lab settle --start shaped)")
     parser.add_argument("--engine", nargs="*", default=[], help="EngineConfig fields key=value of the synthesis the "
                         "residual corrects (the node's configuration of this garment)")
     parser.add_argument("--folds", type=int, default=3, help="clip folds of the validation")
