@@ -1,13 +1,19 @@
 """The HDF5 database: round trip, atomic write, and errors that name the file and the field."""
 import json
 import re
+from dataclasses import replace
+from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
-from agentdress_ros.engine.database import (FIELDS, OPTIONAL_FIELDS, Database, DatabaseError, read_database,
-                                            shape_features, write_database)
+from agentdress_ros.engine.database import (FIELDS, OPTIONAL_FIELDS, Codec, Database, DatabaseError, codecs,
+                                            create_dataset, read_database, register_codec, shape_features,
+                                            write_database)
+from agentdress_ros.engine.pose_models import POSE_MODELS, register_pose_model
+
+SHIPPED = Path(__file__).resolve().parents[1] / "data" / "tshirt_default.h5"
 
 
 def tiny_database(n_vertices=12, n_anchors=3, n_components=2, seed=0, full=False) -> Database:
@@ -252,3 +258,113 @@ def test_dataset_cap_is_a_parameter(tmp_path):
     path = write_database(tmp_path / "db.h5", tiny_database())
     with pytest.raises(DatabaseError, match="field 'garment/faces' declares shape \\(2, 3\\) .* more than"):
         read_database(path, max_dataset_bytes=16)
+
+
+# ---------------------------------------------------------------- a pose model that stores a group of its own
+
+TOY_GROUP = "pose_model/toy"
+
+
+class ToyShiftPoseModel:
+    """The garment's rest shape moved by one stored rest-frame vector (3,): the smallest pose model with arrays of
+    its own. It and its codec live in this file alone; registering them is all it takes."""
+
+    name = "toy"
+    skinned = True
+
+    def __init__(self, context):
+        if context.db.toy is None:
+            raise ValueError("pose model 'toy' needs a database with pose_model/toy")
+        self.rest = np.ascontiguousarray((context.db.rest + context.db.toy).T, dtype=context.dtype)
+
+    def evaluate(self, theta, root, frame):
+        return self.rest
+
+
+def _write_toy(h5, shift):
+    create_dataset(h5.require_group(TOY_GROUP), "shift", np.asarray(shift, dtype=np.float32))
+
+
+def _read_toy(reader):
+    array = reader.numeric(TOY_GROUP + "/shift", np.float32, (3,))
+    reader.check_range(TOY_GROUP + "/shift", array, (-1.0, 1.0), np.float32)
+    return reader.cast(array, np.float32)
+
+
+def _read_toy_v1(reader):
+    """Format version 1 stored the shift in centimetres."""
+    array = reader.numeric(TOY_GROUP + "/shift_cm", np.float32, (3,))
+    reader.check_range(TOY_GROUP + "/shift_cm", array, (-100.0, 100.0), np.float32)
+    return reader.cast(array / 100.0, np.float32)
+
+
+@pytest.fixture
+def toy_model():
+    codec = register_codec(Codec("toy", TOY_GROUP, 2, _write_toy, _read_toy, upgrade="agentdress toy --database FILE",
+                                 migrations={1: _read_toy_v1}))
+    register_pose_model("toy")(ToyShiftPoseModel)
+    yield codec
+    codecs().pop("toy")
+    POSE_MODELS.pop("toy")
+
+
+SHIFT = np.array([0.01, -0.02, 0.03], dtype=np.float32)
+
+
+def test_a_pose_model_registers_its_own_storage(tmp_path, toy_model):
+    """write_database and read_database carry the toy group through its codec, with its format version, and a
+    database without it reads None."""
+    path = write_database(tmp_path / "db.h5", replace(tiny_database(), toy=SHIFT))
+    with h5py.File(path, "r") as h5:
+        assert h5[TOY_GROUP].attrs["format_version"] == 2
+    np.testing.assert_array_equal(read_database(path).toy, SHIFT)
+    assert read_database(write_database(tmp_path / "plain.h5", tiny_database())).toy is None
+    with pytest.raises(TypeError, match="no field or stored model \\['tooy'\\]"):
+        replace(tiny_database(), tooy=SHIFT)
+
+
+def test_the_toy_pose_model_runs_in_the_engine(toy_model):
+    from agentdress_ros.body import AnnyBody
+    from agentdress_ros.engine import Engine, EngineConfig
+    from agentdress_ros.engine.synthetic import make_synthetic_database
+
+    body = AnnyBody()
+    db = replace(make_synthetic_database(1200, 12, n_examples=6, n_sequence=5, seed=3, body=body), toy=SHIFT)
+    rest_pose = np.zeros((len(db.bone_names), 3))
+    outputs = {name: Engine(db, body, EngineConfig(pose_model=name, shape_model=False)).pose_model_output(rest_pose)
+               for name in ("toy", "lbs")}
+    np.testing.assert_allclose(outputs["toy"] - outputs["lbs"], np.broadcast_to(SHIFT, outputs["lbs"].shape),
+                               atol=1e-6)
+
+
+def test_an_older_format_version_is_migrated(tmp_path, toy_model):
+    path = write_database(tmp_path / "db.h5", tiny_database())
+    with h5py.File(path, "r+") as h5:
+        group = h5.create_group(TOY_GROUP)
+        group.create_dataset("shift_cm", data=SHIFT * 100)
+        group.attrs["format_version"] = 1
+    np.testing.assert_allclose(read_database(path).toy, SHIFT, rtol=1e-6)
+
+
+@pytest.mark.parametrize("version", [3, 0])
+def test_an_unknown_format_version_is_refused_with_the_upgrade(tmp_path, toy_model, version):
+    path = write_database(tmp_path / "db.h5", replace(tiny_database(), toy=SHIFT))
+    with h5py.File(path, "r+") as h5:
+        h5[TOY_GROUP].attrs["format_version"] = version
+    with pytest.raises(DatabaseError, match=f"db.h5: group '{TOY_GROUP}' has format version {version}, this reader "
+                                            "reads version 2 \\(and migrates version 1\\): rewrite it with "
+                                            "`agentdress toy --database FILE`"):
+        read_database(path)
+
+
+def test_a_shipped_group_of_another_version_names_its_command(tmp_path):
+    """The shipped databases' groups carry no format_version (version 1, what they read as); one marked 2 is refused
+    naming the command that retrains it."""
+    path = tmp_path / "tshirt.h5"
+    path.write_bytes(SHIPPED.read_bytes())
+    with h5py.File(path, "r+") as h5:
+        assert "format_version" not in h5["pose_model/regressor"].attrs
+        h5["pose_model/regressor"].attrs["format_version"] = 2
+    with pytest.raises(DatabaseError, match="group 'pose_model/regressor' has format version 2, this reader reads "
+                                            "version 1: rewrite it with `agentdress lab regressor --database FILE"):
+        read_database(path)

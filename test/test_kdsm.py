@@ -13,7 +13,8 @@ from agentdress_ros.body.kinematics import forward_kinematics, linear_blend_skin
 from agentdress_ros.offline.sequences import load_sequence_pack
 from agentdress_ros.offline.regressor import RegressorSettings, pose_dofs, predict
 from agentdress_ros.engine import Engine, EngineConfig
-from agentdress_ros.engine.database import KDSM_ARRAYS, DatabaseError, KdsmModel, as_stored, read_database
+from agentdress_ros.engine.database import DatabaseError, as_stored, read_database
+from agentdress_ros.engine.pose_models import KDSM_ARRAYS, KdsmModel
 from agentdress_ros.garment.binding import mesh_edges, vertex_normals
 from agentdress_ros.kdsm.embedding import KdsmPoser, embed, unembed
 from agentdress_ros.kdsm.inverse import candidate_parents, graph_laplacian, harmonic_fill, prune_candidates

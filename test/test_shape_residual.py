@@ -12,7 +12,7 @@ from agentdress_ros.offline.regressor import RegressorSettings, predict
 from agentdress_ros.offline.sequences import load_sequence_pack, rest_frame_offsets
 from agentdress_ros.offline.shape_residual import engine_config, residual_data, train
 from agentdress_ros.engine import DatabaseError, Engine, EngineConfig, read_database, write_database
-from agentdress_ros.engine.database import Regressor, write_regressor
+from agentdress_ros.engine.database import Regressor, write_model
 from agentdress_ros.engine.engine import permute_vertices, select_database
 from agentdress_ros.engine.pose_models import canonical_poses
 
@@ -165,7 +165,7 @@ def test_training_is_deterministic_and_stored_in_the_database(body, tmp_path, da
     ids = tuple(int(i) for i in np.arange(0, database.n_vertices, 4))
     assert select_database(read_database(path), EngineConfig(vertices=ids)).shape_residual.basis.shape[1] == len(ids)
     with h5py.File(path, "r+") as h5:  # a new regressor pose model drops the residual of its predecessor's synthesis
-        write_regressor(h5, database.regressor)
+        write_model(h5, "regressor", database.regressor)
     assert read_database(path).shape_residual is None
     path = write_database(tmp_path / "residual.h5", replace(database, shape_residual=first))
     with h5py.File(path, "r+") as h5:

@@ -33,17 +33,18 @@ at run time. A held-out shape that changes four phenotypes at once is reproduced
 | garment/binding/triangles, .../barycentric, .../offset; attr surface | (V, 3) int32, (V, 3) f64, (V,) f64 | the garment on any body shape: a point of an hm08 triangle (vertex ids) plus an offset along the normal of the `surface` face group; required by the skinned_residual basis |
 | pose_model/examples/poses, .../drapes | (M, B, 3) f32, (M, V, 3) f32 | drapes at beta0 |
 | pose_model/sequence/poses, .../root_translation, .../drapes | (T, B, 3), (T, 3), (T, V, 3) f32; attr fps | a simulated sequence at beta0 |
-| pose_model/regressor/dofs, .../input_mean, .../input_scale | (I,) int32, (I,) f32, (I,) f32 | optional learned pose model (below): input pose dofs (indices into the D = 3B flattened rotation vectors) and their standardisation |
-| pose_model/regressor/layer_NN/weights, .../layer_NN/bias | (H_n, H_n+1) f16, (H_n+1,) f32 | the MLP's layers, NN = 00, 01, ... (H_0 = I, the last = G); attrs activation, layers, info (JSON); weights written as float16 (f32 read as well) |
-| pose_model/regressor/coefficient_mean, .../coefficient_scale, .../mean, .../basis | (G,), (G,) f32, (V, 3) f32, (G, V, 3) f16 | PCA of the rest-frame garment: position = mean + sum_g (y_g scale_g + mean_g) basis_g for the MLP output y |
 
-| pose_model/kdsm/origin, .../dims, .../vertices, .../tets, .../class_inverse, .../lattice_tets | (3,) f64, (3,) int64, (Nk, 3) f64, (Tk, 4) int32, (12, 3, 3) f64, (Lk,) int32 | optional KDSM (kdsm.mesh.KDSM, below); attrs spacing, settings (JSON), info (JSON) |
-| pose_model/kdsm/skin_indices, .../skin_weights, .../body_distance | (Nk, 4) int32, (Nk, 4) f64, (Nk,) f64 | the tet vertices' skinning and rest distance to the body |
-| pose_model/kdsm/rest | (V, 3) f32 | u^{m_o}: the rest garment the displacements are learned for (in this file's vertex order) |
-| pose_model/kdsm/regressor/... | as pose_model/regressor | the learned d(theta): PCA of the plastic displacements d, MLP from the pose |
-| pose_model/recurrent/input_weights, .../state_weights, .../bias, .../output_weights, .../output_bias | (I, 3H), (H, 3H), (3H,), (H, G), (G,) f32 | optional recurrent correction of pose_model/regressor (engine.pose_models.RecurrentPoseModel): a GRU over the regressor's standardised inputs (gates z, r, n in that order) whose state adds output_weights h + output_bias to the regressor's standardised outputs; attrs hidden (H), info (JSON) |
-| shape_model/residual/... | as pose_model/regressor, dofs in [0, D + 6) | optional learned correction of synthesis at other body shapes (EngineConfig.shape_residual, offline.shape_residual): inputs the D pose dofs followed by the 6 phenotypes, output a rest-frame displacement added to the blended shape delta; info (JSON) names the engine configuration it was trained against |
-| garment_model/santesteban/fit/..., .../wrinkles/... | as pose_model/regressor, dofs in [0, D + 6) | optional garment model of Santesteban et al. 2019 (engine.santesteban): its inputs are the D pose dofs followed by the 6 phenotypes; fit R_G(beta) and wrinkles R_L(beta, theta), both rest-frame displacements of the garment; attrs info (JSON) |
+Optional models (a pose model's learned arrays, another garment model) are stored in groups of their own by the
+`Codec` their module registers beside its code (`register_codec`; engine.codecs lists those modules, and each
+codec's docstring gives its group's layout). A group carries the attribute format_version (absent: 1, the format
+before versions were written); a group of another version is migrated by the codec or refused with the command that
+rewrites it. The regressor group's arrays are the building block of several of them:
+
+| path | shape, dtype | meaning |
+|---|---|---|
+| <group>/dofs, .../input_mean, .../input_scale | (I,) int32, (I,) f32, (I,) f32 | input pose dofs (indices into the D = 3B flattened rotation vectors, or D + 6 with the phenotypes) and their standardisation |
+| <group>/layer_NN/weights, .../layer_NN/bias | (H_n, H_n+1) f16, (H_n+1,) f32 | the MLP's layers, NN = 00, 01, ... (H_0 = I, the last = G); attrs activation, layers, info (JSON); weights written as float16 (f32 read as well) |
+| <group>/coefficient_mean, .../coefficient_scale, .../mean, .../basis | (G,), (G,) f32, (V, 3) f32, (G, V, 3) f16 | PCA of the rest-frame garment: position = mean + sum_g (y_g scale_g + mean_g) basis_g for the MLP output y |
 
 The regressor (Santesteban et al. 2019, Sec. 3-4) is f(beta0, theta) in the rest frame: the garment unposed with
 beta0's bones (their Eq. 5), reduced by PCA, regressed from the pose by an MLP (hidden layers `activation`, the last
@@ -51,17 +52,15 @@ linear). Trained offline (`agentdress lab regressor`, offline.regressor); evalua
 parts regressor (info "parts") is the same arrays holding one PCA and MLP per garment region side by side: no weight
 joins two parts, and each part's basis rows are its own PCA times its blend weight on its own vertices (so they are
 orthonormal only within one part).
-
-The KDSM group (KDSM paper, Sec. 3-6) is the `kdsm` pose model: a skinned tet mesh of the air around the body at
-beta0 and an MLP of the same kind learning the plastic displacements d(theta) of the garment in it; at run time
-rest + d is re-embedded in the lattice and the parent tet skinned (world positions). Trained offline
-(`python -m agentdress_ros.evaluate.kdsm_comparison`).
 """
 from __future__ import annotations
 
+import importlib
 import json
-from dataclasses import dataclass, field, replace
+import threading
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+from typing import Callable
 
 import h5py
 import numpy as np
@@ -90,14 +89,6 @@ REGRESSOR_GROUP = "pose_model/regressor"
 REGRESSOR_ACTIVATIONS = ("tanh", "relu")
 MAX_LAYERS = 16
 
-
-KDSM_GROUP = "pose_model/kdsm"
-SANTESTEBAN_GROUP = "garment_model/santesteban"
-SHAPE_RESIDUAL_GROUP = "shape_model/residual"
-RECURRENT_GROUP = "pose_model/recurrent"
-RECURRENT_ARRAYS = ("input_weights", "state_weights", "bias", "output_weights", "output_bias")
-KDSM_ARRAYS = ("origin", "dims", "vertices", "tets", "class_inverse", "lattice_tets", "skin_indices", "skin_weights",
-               "body_distance")
 
 
 @dataclass(frozen=True)
@@ -130,14 +121,10 @@ def as_stored(regressor: Regressor) -> Regressor:
 
 
 def write_regressor(h5, regressor: Regressor, name: str = REGRESSOR_GROUP) -> None:
-    """Write (or replace) the regressor group `name` in an open, writable HDF5 file. A new pose_model/regressor drops
-    the groups trained on the one it replaces: pose_model/recurrent, and shape_model/residual (the residual of a
-    synthesis that ran it)."""
+    """Write (or replace) the regressor arrays as group `name` in an open, writable HDF5 file (the building block of
+    several models' groups; a model's whole group is written by write_model)."""
     if name in h5:
         del h5[name]
-    for trained_on_it in (RECURRENT_GROUP, SHAPE_RESIDUAL_GROUP) if name == REGRESSOR_GROUP else ():
-        if trained_on_it in h5:
-            del h5[trained_on_it]
     group = h5.require_group(name)
     arrays = {"dofs": (regressor.dofs, np.int32), "input_mean": (regressor.input_mean, np.float32),
               "input_scale": (regressor.input_scale, np.float32),
@@ -150,111 +137,82 @@ def write_regressor(h5, regressor: Regressor, name: str = REGRESSOR_GROUP) -> No
         arrays[f"layer_{n:02d}/weights"] = (w, np.float16)
         arrays[f"layer_{n:02d}/bias"] = (b, np.float32)
     for name, (value, dtype) in arrays.items():
-        _create(group, name, np.ascontiguousarray(value, dtype=dtype))
+        create_dataset(group, name, np.ascontiguousarray(value, dtype=dtype))
     group.attrs["activation"] = regressor.activation
     group.attrs["layers"] = len(regressor.weights)
     group.attrs["info"] = json.dumps(regressor.info)
 
 
-@dataclass(frozen=True)
-class Recurrent:
-    """The recurrent pose model's GRU (group pose_model/recurrent; shapes in the module docstring): its input is the
-    regressor's standardised input x (I,), its state h (H,); the regressor's standardised output y (G,) becomes
-    y + output_weights h + output_bias."""
-
-    input_weights: np.ndarray  # (I, 3H) f32: gates z, r, n
-    state_weights: np.ndarray  # (H, 3H) f32
-    bias: np.ndarray  # (3H,) f32
-    output_weights: np.ndarray  # (H, G) f32
-    output_bias: np.ndarray  # (G,) f32
-    info: dict = field(default_factory=dict)
-
-    @property
-    def hidden(self) -> int:
-        return self.state_weights.shape[0]
-
-
-def write_recurrent(h5, recurrent: Recurrent) -> None:
-    """Write (or replace) the pose_model/recurrent group in an open, writable HDF5 file."""
-    if RECURRENT_GROUP in h5:
-        del h5[RECURRENT_GROUP]
-    group = h5.require_group(RECURRENT_GROUP)
-    for name in RECURRENT_ARRAYS:
-        _create(group, name, np.ascontiguousarray(getattr(recurrent, name), dtype=np.float32))
-    group.attrs["hidden"] = recurrent.hidden
-    group.attrs["info"] = json.dumps(recurrent.info)
-
-
-@dataclass(frozen=True)
-class SantestebanArrays:
-    """The garment model of Santesteban et al. 2019 (group garment_model/santesteban): two regressors whose input is
-    the pose's D dofs followed by the 6 phenotypes (their `dofs` index that vector), each predicting a rest-frame
-    displacement (V, 3) of the garment: `fit` R_G(beta) and `wrinkles` R_L(beta, theta)."""
-
-    fit: Regressor
-    wrinkles: Regressor
-    info: dict = field(default_factory=dict)
-
-    def vertex_rows(self, ids) -> "SantestebanArrays":
-        return replace(self, fit=self.fit.vertex_rows(ids), wrinkles=self.wrinkles.vertex_rows(ids))
-
-
-def write_santesteban(h5, arrays: SantestebanArrays) -> None:
-    """Write (or replace) the garment_model/santesteban group in an open, writable HDF5 file."""
-    if SANTESTEBAN_GROUP in h5:
-        del h5[SANTESTEBAN_GROUP]
-    write_regressor(h5, arrays.fit, SANTESTEBAN_GROUP + "/fit")
-    write_regressor(h5, arrays.wrinkles, SANTESTEBAN_GROUP + "/wrinkles")
-    h5[SANTESTEBAN_GROUP].attrs["info"] = json.dumps(arrays.info)
-
-
-@dataclass(frozen=True)
-class KdsmModel:
-    """The `kdsm` pose model's arrays (group pose_model/kdsm): the KDSM (kdsm.mesh.KDSM), the rest garment its
-    displacements belong to, and the regressor of d(theta) (rest-frame displacements instead of positions)."""
-
-    kdsm: object  # kdsm.mesh.KDSM
-    rest: np.ndarray  # (V, 3) f32
-    regressor: Regressor
-    info: dict = field(default_factory=dict)
-
-    def vertex_rows(self, ids) -> "KdsmModel":
-        """The model restricted to (or reordered by) garment vertex indices `ids`."""
-        return replace(self, rest=self.rest[ids], regressor=self.regressor.vertex_rows(ids))
-
-
-def write_kdsm_model(h5, model: KdsmModel) -> None:
-    """Write (or replace) the KDSM group in an open, writable HDF5 file."""
-    if KDSM_GROUP in h5:
-        del h5[KDSM_GROUP]
-    group = h5.require_group(KDSM_GROUP)
-    kdsm = model.kdsm
-    for name in KDSM_ARRAYS:
-        _create(group, name, np.ascontiguousarray(getattr(kdsm, name)))
-    _create(group, "rest", np.ascontiguousarray(model.rest, dtype=np.float32))
-    group.attrs["spacing"] = float(kdsm.spacing)
-    group.attrs["settings"] = json.dumps(_settings_dict(kdsm.settings))
-    group.attrs["kdsm_info"] = json.dumps(kdsm.info)
-    group.attrs["info"] = json.dumps(model.info)
-    write_regressor(h5, model.regressor, KDSM_GROUP + "/regressor")
-
-
-def _settings_dict(settings) -> dict:
-    from dataclasses import asdict
-
-    return asdict(settings)
-
-
-def _create(parent, name: str, array: np.ndarray) -> None:
+def create_dataset(parent, name: str, array: np.ndarray) -> None:
     """A dataset, compressed when it is big."""
     big = array.size > 4096
     parent.create_dataset(name, data=array, compression="gzip" if big else None, compression_opts=4 if big else None,
                           shuffle=big)
 
 
+@dataclass(frozen=True)
+class Codec:
+    """How an optional model is stored: the Database attribute `name` it is read into, its HDF5 `group`, its format
+    `version` (the group's attribute format_version; absent means 1), write(h5, value) creating the group,
+    read(reader) -> value validating it (the reader's `stored` holds the models read before it),
+    migrations {older version: read function for that version}, `upgrade` the command that rewrites the group at
+    `version`, and `trained_on` the model whose replacement drops this one (it was trained on its outputs)."""
+
+    name: str
+    group: str
+    version: int
+    write: Callable
+    read: Callable
+    upgrade: str
+    migrations: dict = field(default_factory=dict)
+    trained_on: str = ""
+
+
+_CODECS: dict[str, Codec] = {}
+_CODECS_LOADED = False
+_CODECS_LOCK = threading.RLock()  # the first read may come from two threads (the node's model worker and a tick)
+
+
+def register_codec(codec: Codec) -> Codec:
+    """Register (or replace) the codec of one optional model; models are read and written in registration order."""
+    if codec.name in _TABLE_FIELDS or codec.name == "stored":
+        raise ValueError(f"codec name {codec.name!r} is a field of the database itself")
+    if codec.version < 1 or codec.version in codec.migrations:
+        raise ValueError(f"codec {codec.name!r}: version {codec.version} must be >= 1 and not one it migrates from")
+    _CODECS[codec.name] = codec
+    return codec
+
+
+def codecs() -> dict[str, Codec]:
+    """Every registered codec by name, the modules of engine.codecs imported first (they register theirs)."""
+    global _CODECS_LOADED
+    if not _CODECS_LOADED:
+        with _CODECS_LOCK:
+            if not _CODECS_LOADED:
+                from .codecs import CODEC_MODULES
+
+                for module in CODEC_MODULES:
+                    importlib.import_module(module)
+                _CODECS_LOADED = True
+    return _CODECS
+
+
+def write_model(h5, name: str, value) -> None:
+    """Write (or replace) the group of optional model `name` in an open, writable HDF5 file, with its format version;
+    the groups trained on the one replaced (Codec.trained_on) are dropped."""
+    codec = codecs()[name]
+    for other in _CODECS.values():
+        if other.trained_on == name and other.group in h5:
+            del h5[other.group]
+    if codec.group in h5:
+        del h5[codec.group]
+    codec.write(h5, value)
+    h5[codec.group].attrs["format_version"] = codec.version
+
+
 @dataclass
-class Database:
-    """All arrays of a database, in memory (names and shapes as in the module docstring)."""
+class _Tables:
+    """The schema core's arrays and attributes (names and shapes as in the module docstring)."""
 
     garment: str
     faces: np.ndarray
@@ -283,11 +241,6 @@ class Database:
     sequence_root_translation: np.ndarray | None = None
     sequence_drapes: np.ndarray | None = None
     sequence_fps: float = 30.0
-    regressor: "Regressor | None" = None
-    kdsm_model: "KdsmModel | None" = None
-    santesteban: "SantestebanArrays | None" = None
-    recurrent: "Recurrent | None" = None
-    shape_residual: "Regressor | None" = None
     shape_basis: str = "absolute"
     binding_triangles: np.ndarray | None = None
     binding_barycentric: np.ndarray | None = None
@@ -296,6 +249,29 @@ class Database:
     body_model: str = "anny/cmu_mb"
     build_command: str = ""
     provenance: dict = field(default_factory=dict)
+    stored: dict = field(default_factory=dict)  # optional models by codec name (register_codec)
+
+
+_TABLE_FIELDS = frozenset(f.name for f in fields(_Tables))
+
+
+class Database(_Tables):
+    """All arrays of a database, in memory. The optional models are attributes by their codec's name (`db.regressor`,
+    None when the file has none) and keywords of the constructor and of dataclasses.replace
+    (`replace(db, regressor=r)`, None removes one); they live in `stored`."""
+
+    def __init__(self, *args, stored: dict | None = None, **kwargs):
+        models = {name: kwargs.pop(name) for name in list(kwargs) if name not in _TABLE_FIELDS}
+        unknown = sorted(set(models) - set(codecs())) if models else []
+        if unknown:
+            raise TypeError(f"Database has no field or stored model {unknown}; stored models: {sorted(codecs())}")
+        merged = {**(stored or {}), **models}
+        super().__init__(*args, stored={name: value for name, value in merged.items() if value is not None}, **kwargs)
+
+    def __getattr__(self, name):  # only for names that are not fields: the optional models
+        if name.startswith("__") or name == "stored" or name not in codecs():
+            raise AttributeError(f"'Database' object has no attribute {name!r}")
+        return self.__dict__.get("stored", {}).get(name)
 
     @property
     def n_vertices(self) -> int:
@@ -370,7 +346,7 @@ def write_database(path, db: Database) -> Path:
             value = getattr(db, attr)
             if value is None:
                 continue
-            _create(h5, name, np.ascontiguousarray(value, dtype=dtype))
+            create_dataset(h5, name, np.ascontiguousarray(value, dtype=dtype))
         for name, attr, _ in STRING_FIELDS:
             h5.create_dataset(name, data=np.array(getattr(db, attr), dtype=h5py.string_dtype()))
         h5["garment/regions"].attrs["region_names"] = json.dumps(list(db.region_names))
@@ -379,34 +355,30 @@ def write_database(path, db: Database) -> Path:
         h5["anchors"].attrs["shape_basis"] = db.shape_basis
         if db.binding_triangles is not None:
             h5["garment/binding"].attrs["surface"] = db.binding_surface
-        if db.regressor is not None:
-            write_regressor(h5, db.regressor)
-        if db.kdsm_model is not None:
-            write_kdsm_model(h5, db.kdsm_model)
-        if db.santesteban is not None:
-            write_santesteban(h5, db.santesteban)
-        if db.recurrent is not None:
-            write_recurrent(h5, db.recurrent)
-        if db.shape_residual is not None:
-            write_regressor(h5, db.shape_residual, SHAPE_RESIDUAL_GROUP)
+        for name in codecs():  # registration order: a model before those trained on it
+            if db.stored.get(name) is not None:
+                write_model(h5, name, db.stored[name])
     partial.replace(path)
     return path
 
 
-def _shown(value):
+def shown(value):
     """An attribute's value as Python shows it (a numpy scalar as its plain number)."""
     return value.item() if isinstance(value, np.generic) else value
 
 
 class _Reader:
     """One validating read of an open database file. Every check fails with a DatabaseError naming the file, the
-    field (or attribute) and what is wrong; `where` names what is being read when h5py itself fails."""
+    field (or attribute) and what is wrong; `where` names what is being read when h5py itself fails. A codec reads
+    its group through the same checks (numeric, check_range, cast, attribute, text, json, regressor,
+    with_phenotype_inputs, fail)."""
 
     def __init__(self, path: Path, h5, max_dataset_bytes: int):
         self.path, self.h5, self.max_dataset_bytes = path, h5, max_dataset_bytes
         self.where = "the file"
         self.sizes: dict = {}  # letter -> (size, field that set it)
         self.total_bytes = 0
+        self.stored: dict = {}  # optional models read so far, by codec name
 
     def fail(self, what: str):
         raise DatabaseError(f"{self.path}: {self.where} {what}")
@@ -528,7 +500,7 @@ class _Reader:
             except UnicodeDecodeError as error:
                 self.fail(f"is not UTF-8 text ({error})")
         if not isinstance(value, str):
-            self.fail(f"is {type(value).__name__} {_shown(value)!r}, expected text")
+            self.fail(f"is {type(value).__name__} {shown(value)!r}, expected text")
         if not allow_empty and not value:
             self.fail("is empty")
         return value
@@ -576,7 +548,7 @@ class _Reader:
         if "pose_model/sequence/poses" in raw:
             fps = self.attribute("pose_model/sequence", "fps", 30.0)
             if not (np.ndim(fps) == 0 and np.asarray(fps).dtype.kind in "iuf" and 0 < fps <= 1e4):
-                self.fail(f"is {_shown(fps)!r}, expected a frame rate in (0, 10000]")
+                self.fail(f"is {shown(fps)!r}, expected a frame rate in (0, 10000]")
             extras["sequence_fps"] = float(fps)
         basis = self.text("anchors", "shape_basis", "absolute")
         if basis not in SHAPE_BASES:
@@ -588,52 +560,33 @@ class _Reader:
                     raise DatabaseError(f"{self.path}: field '{name}' is missing (required by the skinned_residual "
                                         "basis)")
             extras["binding_surface"] = self.text("garment/binding", "surface", allow_empty=False)
-        extras["regressor"] = self.regressor()
-        extras["kdsm_model"] = self.kdsm_model()
-        extras["santesteban"] = self.santesteban()
-        extras["recurrent"] = self.recurrent(extras["regressor"])
-        extras["shape_residual"] = self.with_phenotype_inputs(SHAPE_RESIDUAL_GROUP)
-        return Database(**values, **extras)
+        for codec in codecs().values():
+            value = self.stored_model(codec)
+            if value is not None:
+                self.stored[codec.name] = value
+        return Database(**values, **extras, stored=self.stored)
 
-    def recurrent(self, regressor) -> Recurrent | None:
-        """The optional pose_model/recurrent group (None when absent): its sizes tied to pose_model/regressor's
-        inputs (I) and outputs (G), which it needs."""
-        self.where = f"group '{RECURRENT_GROUP}'"
-        group = self.h5.get(RECURRENT_GROUP)
+    def stored_model(self, codec: Codec):
+        """The optional model of `codec` (None when its group is absent), read by the codec at the group's format
+        version: the current one, one it migrates, else refused naming the version and the command that rewrites
+        it."""
+        self.where = f"group '{codec.group}'"
+        group = self.h5.get(codec.group)
         if group is None:
             return None
         if not isinstance(group, h5py.Group):
             self.fail("is a dataset, not a group")
-        if regressor is None:
-            self.fail(f"needs the group '{REGRESSOR_GROUP}', which is missing")
-        hidden = self.attribute(RECURRENT_GROUP, "hidden")
-        if not (np.ndim(hidden) == 0 and np.asarray(hidden).dtype.kind in "iu" and 1 <= hidden <= 4096):
-            self.fail(f"is {_shown(hidden)!r}, expected a state size in [1, 4096]")
-        info = self.json(RECURRENT_GROUP, "info", "{}", dict)
-        h, i, g = int(hidden), len(regressor.dofs), len(regressor.coefficient_scale)  # tied to the regressor
-        shapes = {"input_weights": (i, 3 * h), "state_weights": (h, 3 * h), "bias": (3 * h,),
-                  "output_weights": (h, g), "output_bias": (g,)}
-        values = {}
-        for name in RECURRENT_ARRAYS:
-            field_name = f"{RECURRENT_GROUP}/{name}"
-            array = self.numeric(field_name, np.float32, shapes[name])
-            self.check_range(field_name, array, (-1.0e6, 1.0e6), np.float32)
-            values[name] = self.cast(array, np.float32)
-        return Recurrent(**values, info=info)
-
-    def santesteban(self) -> SantestebanArrays | None:
-        """The optional garment_model/santesteban group (None when absent), its regressors checked like
-        pose_model/regressor with inputs the D pose dofs and the 6 phenotypes."""
-        self.where = f"group '{SANTESTEBAN_GROUP}'"
-        group = self.h5.get(SANTESTEBAN_GROUP)
-        if group is None:
-            return None
-        if not isinstance(group, h5py.Group):
-            self.fail("is a dataset, not a group")
-        info = self.json(SANTESTEBAN_GROUP, "info", "{}", dict)
-        fit = self.with_phenotype_inputs(SANTESTEBAN_GROUP + "/fit", required=True)
-        wrinkles = self.with_phenotype_inputs(SANTESTEBAN_GROUP + "/wrinkles", required=True)
-        return SantestebanArrays(fit=fit, wrinkles=wrinkles, info=info)
+        version = self.attribute(codec.group, "format_version", 1)
+        if not (np.ndim(version) == 0 and np.asarray(version).dtype.kind in "iu"):
+            self.fail(f"is {shown(version)!r}, expected a format version number")
+        read = codec.read if version == codec.version else codec.migrations.get(int(version))
+        self.where = f"group '{codec.group}'"
+        if read is None:
+            migrated = f" (and migrates version {', '.join(map(str, sorted(codec.migrations)))})" \
+                if codec.migrations else ""
+            self.fail(f"has format version {int(version)}, this reader reads version {codec.version}{migrated}: "
+                      f"rewrite it with `{codec.upgrade}`")
+        return read(self)
 
     def with_phenotype_inputs(self, group_name: str, required: bool = False) -> Regressor | None:
         """A regressor group checked like pose_model/regressor, whose inputs are the D pose dofs followed by the 6
@@ -644,59 +597,9 @@ class _Reader:
         finally:
             self.sizes["D"] = pose_dofs
 
-    def kdsm_model(self) -> KdsmModel | None:
-        """The optional KDSM group (None when absent): the mesh's arrays checked for shapes, index ranges and
-        weights, its rest garment against V, its regressor like pose_model/regressor."""
-        from ..kdsm.mesh import KDSM, KDSMSettings
-
-        self.where = f"group '{KDSM_GROUP}'"
-        group = self.h5.get(KDSM_GROUP)
-        if group is None:
-            return None
-        if not isinstance(group, h5py.Group):
-            self.fail("is a dataset, not a group")
-        spacing = self.attribute(KDSM_GROUP, "spacing")
-        if not (np.ndim(spacing) == 0 and np.asarray(spacing).dtype.kind == "f" and 1e-4 <= spacing <= 1.0):
-            self.fail(f"is {_shown(spacing)!r}, expected a lattice step in [1e-4, 1] m")
-        settings = self.json(KDSM_GROUP, "settings", "{}", dict)
-        kdsm_info = self.json(KDSM_GROUP, "kdsm_info", "{}", dict)
-        info = self.json(KDSM_GROUP, "info", "{}", dict)
-        g = KDSM_GROUP + "/"
-        fields = [("origin", np.float64, (3,), POINTS), ("dims", np.int64, (3,), (1, 100_000)),
-                  ("vertices", np.float64, ("Nk", 3), POINTS), ("tets", np.int32, ("Tk", 4), (0, "Nk")),
-                  ("class_inverse", np.float64, (12, 3, 3), (None, None)),
-                  ("lattice_tets", np.int32, ("Lk",), (-1, "Tk")),
-                  ("skin_indices", np.int32, ("Nk", N_INFLUENCES), (0, "B")),
-                  ("skin_weights", np.float64, ("Nk", N_INFLUENCES), (0.0, 1.0)),
-                  ("body_distance", np.float64, ("Nk",), (-1.0e3, 1.0e3)), ("rest", np.float32, ("V", 3), POINTS)]
-        values = {}
-        for name, dtype, spec, bounds in fields:
-            array = self.numeric(g + name, dtype, spec)
-            if name != "class_inverse":  # NaN-free is all: classes not meshed are never read
-                self.check_range(g + name, array, bounds, dtype)
-            values[name] = self.cast(array, dtype)
-        self.where = f"field '{g}lattice_tets'"
-        if int(np.prod(values["dims"])) * 12 != len(values["lattice_tets"]):
-            self.fail(f"has {len(values['lattice_tets'])} entries, expected 12 per cube of dims "
-                      f"{values['dims'].tolist()}")
-        self.where = f"field '{g}skin_weights'"
-        if np.abs(values["skin_weights"].sum(axis=1) - 1.0).max() > 1e-4:
-            self.fail("has rows that do not sum to 1")
-        for name in ("Nk", "Tk", "Lk"):
-            self.sizes.pop(name, None)
-        regressor = self.regressor(KDSM_GROUP + "/regressor", required=True)
-        rest = values.pop("rest")
-        try:
-            kdsm_settings = KDSMSettings(**settings)
-        except TypeError as error:
-            self.where = f"attribute '{KDSM_GROUP}/settings'"
-            self.fail(f"does not hold KDSM settings ({error})")
-        kdsm = KDSM(spacing=float(spacing), settings=kdsm_settings, info=kdsm_info, **values)
-        return KdsmModel(kdsm=kdsm, rest=rest, regressor=regressor, info=info)
-
     def regressor(self, group_name: str = REGRESSOR_GROUP, required: bool = False) -> Regressor | None:
-        """The optional learned pose model's group (`group_name`: pose_model/regressor, or the KDSM's), checked like
-        every other field (None when absent)."""
+        """The regressor arrays of group `group_name` (pose_model/regressor, or a part of another model's group),
+        checked like every other field (None when absent and not required)."""
         self.where = f"group '{group_name}'"
         group = self.h5.get(group_name)
         if group is None and required:
@@ -707,7 +610,7 @@ class _Reader:
             self.fail("is a dataset, not a group")
         layers = self.attribute(group_name, "layers")
         if not (np.ndim(layers) == 0 and np.asarray(layers).dtype.kind in "iu" and 1 <= layers <= MAX_LAYERS):
-            self.fail(f"is {_shown(layers)!r}, expected a layer count in [1, {MAX_LAYERS}]")
+            self.fail(f"is {shown(layers)!r}, expected a layer count in [1, {MAX_LAYERS}]")
         activation = self.text(group_name, "activation", allow_empty=False)
         if activation not in REGRESSOR_ACTIVATIONS:
             self.fail(f"is {activation!r}, expected one of {REGRESSOR_ACTIVATIONS}")

@@ -23,7 +23,7 @@ from ..body import AnnyBody, quads_to_triangles
 from ..body.kinematics import forward_kinematics, linear_blend_skinning, linear_blend_skinning_into
 from ..garment.binding import SurfaceBinding, evaluate_surface_binding, largest_face_corners, vertex_normals
 from .config import PER_FRAME_KNOBS, TAYLOR_MODES, EngineConfig
-from .database import Database, read_database, shape_features
+from .database import Codec, Database, read_database, register_codec, shape_features, write_regressor
 from .kernels import (apply_push, block_accumulate, block_push, pose_transforms, prepare_pose, project_out_of_body,
                       region_neighbours, shape_anchors, spaced_candidates, synthesize_vertices, unpose)
 from .pose_models import PoseModelContext, RegressorDecoder, canonical_poses, make_pose_model
@@ -652,3 +652,14 @@ def load_engine(path, config: EngineConfig = EngineConfig(), body: AnnyBody | No
     """Read a database file (raises DatabaseError naming the field) and build an Engine on `body` (default Anny)."""
     db = read_database(path)
     return Engine(db, body if body is not None else AnnyBody(), config)
+
+
+# The learned shape residual (EngineConfig.shape_residual, offline.shape_residual), group shape_model/residual: the
+# arrays of pose_model/regressor with dofs in [0, D + 6), its inputs the D pose dofs followed by the 6 phenotypes, its
+# output a rest-frame displacement added to the blended shape delta; info (JSON) names the engine configuration it was
+# trained against, so a new pose_model/regressor drops it.
+SHAPE_RESIDUAL_GROUP = "shape_model/residual"
+register_codec(Codec(
+    "shape_residual", SHAPE_RESIDUAL_GROUP, 1, lambda h5, residual: write_regressor(h5, residual, SHAPE_RESIDUAL_GROUP),
+    lambda reader: reader.with_phenotype_inputs(SHAPE_RESIDUAL_GROUP, required=True), trained_on="regressor",
+    upgrade="agentdress lab shape-residual --database FILE --shaped PACK"))

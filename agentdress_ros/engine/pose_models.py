@@ -10,17 +10,23 @@ reads it before the next call. Later models (learned, volumetric) register the s
 
     @register_pose_model("mine")
     def _make(context: PoseModelContext) -> PoseModel: ...
+
+A model with arrays of its own stores them in a database group through a Codec registered beside its code
+(engine.database.register_codec, its module listed in engine.codecs), as the learned models at the end of this
+module do; the database reads it into `db.<codec name>`.
 """
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, field, replace
 from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
 
 from ..body.kinematics import forward_kinematics
-from .database import Database
+from .database import (N_INFLUENCES, POINTS, REGRESSOR_GROUP, Codec, Database, Regressor, create_dataset,
+                       register_codec, shown, write_regressor)
 from .kernels import add_to_columns, block_accumulate, prepare_pose, region_neighbours, unpose
 
 
@@ -554,3 +560,169 @@ register_pose_model("sequence")(SequencePoseModel)
 register_pose_model("regressor")(RegressorPoseModel)
 register_pose_model("recurrent")(RecurrentPoseModel)
 register_pose_model("kdsm")(KdsmPoseModel)
+
+
+# ---------------------------------------------------------------- storage of the learned pose models' groups
+
+
+def _read_regressor(reader) -> Regressor:
+    return reader.regressor(REGRESSOR_GROUP, required=True)
+
+
+register_codec(Codec(
+    "regressor", REGRESSOR_GROUP, 1, lambda h5, regressor: write_regressor(h5, regressor), _read_regressor,
+    upgrade="agentdress lab regressor --database FILE --pack PACK"))
+
+
+RECURRENT_GROUP = "pose_model/recurrent"
+RECURRENT_ARRAYS = ("input_weights", "state_weights", "bias", "output_weights", "output_bias")
+
+
+@dataclass(frozen=True)
+class Recurrent:
+    """The recurrent pose model's GRU (group pose_model/recurrent): its input is the regressor's standardised input
+    x (I,), its state h (H,); the regressor's standardised output y (G,) becomes y + output_weights h + output_bias.
+
+    | path | shape, dtype | meaning |
+    |---|---|---|
+    | pose_model/recurrent/input_weights, .../state_weights, .../bias | (I, 3H), (H, 3H), (3H,) f32 | the GRU (gates z, r, n in that order); attrs hidden (H), info (JSON) |
+    | pose_model/recurrent/output_weights, .../output_bias | (H, G), (G,) f32 | the state's correction of the regressor's standardised outputs |
+    """
+
+    input_weights: np.ndarray  # (I, 3H) f32: gates z, r, n
+    state_weights: np.ndarray  # (H, 3H) f32
+    bias: np.ndarray  # (3H,) f32
+    output_weights: np.ndarray  # (H, G) f32
+    output_bias: np.ndarray  # (G,) f32
+    info: dict = field(default_factory=dict)
+
+    @property
+    def hidden(self) -> int:
+        return self.state_weights.shape[0]
+
+
+def _write_recurrent(h5, recurrent: Recurrent) -> None:
+    group = h5.require_group(RECURRENT_GROUP)
+    for name in RECURRENT_ARRAYS:
+        create_dataset(group, name, np.ascontiguousarray(getattr(recurrent, name), dtype=np.float32))
+    group.attrs["hidden"] = recurrent.hidden
+    group.attrs["info"] = json.dumps(recurrent.info)
+
+
+def _read_recurrent(reader) -> Recurrent:
+    """Its sizes tied to pose_model/regressor's inputs (I) and outputs (G), which it needs."""
+    regressor = reader.stored.get("regressor")
+    if regressor is None:
+        reader.fail(f"needs the group '{REGRESSOR_GROUP}', which is missing")
+    hidden = reader.attribute(RECURRENT_GROUP, "hidden")
+    if not (np.ndim(hidden) == 0 and np.asarray(hidden).dtype.kind in "iu" and 1 <= hidden <= 4096):
+        reader.fail(f"is {shown(hidden)!r}, expected a state size in [1, 4096]")
+    info = reader.json(RECURRENT_GROUP, "info", "{}", dict)
+    h, i, g = int(hidden), len(regressor.dofs), len(regressor.coefficient_scale)  # tied to the regressor
+    shapes = {"input_weights": (i, 3 * h), "state_weights": (h, 3 * h), "bias": (3 * h,),
+              "output_weights": (h, g), "output_bias": (g,)}
+    values = {}
+    for name in RECURRENT_ARRAYS:
+        field_name = f"{RECURRENT_GROUP}/{name}"
+        array = reader.numeric(field_name, np.float32, shapes[name])
+        reader.check_range(field_name, array, (-1.0e6, 1.0e6), np.float32)
+        values[name] = reader.cast(array, np.float32)
+    return Recurrent(**values, info=info)
+
+
+register_codec(Codec(
+    "recurrent", RECURRENT_GROUP, 1, _write_recurrent, _read_recurrent, trained_on="regressor",
+    upgrade="agentdress lab recurrent --database FILE --pack PACK"))
+
+
+KDSM_GROUP = "pose_model/kdsm"
+KDSM_ARRAYS = ("origin", "dims", "vertices", "tets", "class_inverse", "lattice_tets", "skin_indices", "skin_weights",
+               "body_distance")
+
+
+@dataclass(frozen=True)
+class KdsmModel:
+    """The `kdsm` pose model's arrays (group pose_model/kdsm): the KDSM (kdsm.mesh.KDSM), the rest garment its
+    displacements belong to, and the regressor of d(theta) (rest-frame displacements instead of positions).
+
+    | path | shape, dtype | meaning |
+    |---|---|---|
+    | pose_model/kdsm/origin, .../dims, .../vertices, .../tets, .../class_inverse, .../lattice_tets | (3,) f64, (3,) int64, (Nk, 3) f64, (Tk, 4) int32, (12, 3, 3) f64, (Lk,) int32 | the KDSM; attrs spacing, settings (JSON), kdsm_info (JSON), info (JSON) |
+    | pose_model/kdsm/skin_indices, .../skin_weights, .../body_distance | (Nk, 4) int32, (Nk, 4) f64, (Nk,) f64 | the tet vertices' skinning and rest distance to the body |
+    | pose_model/kdsm/rest | (V, 3) f32 | u^{m_o}: the rest garment the displacements are learned for (in this file's vertex order) |
+    | pose_model/kdsm/regressor/... | as pose_model/regressor | the learned d(theta): PCA of the plastic displacements d, MLP from the pose |
+    """
+
+    kdsm: object  # kdsm.mesh.KDSM
+    rest: np.ndarray  # (V, 3) f32
+    regressor: Regressor
+    info: dict = field(default_factory=dict)
+
+    def vertex_rows(self, ids) -> "KdsmModel":
+        """The model restricted to (or reordered by) garment vertex indices `ids`."""
+        return replace(self, rest=self.rest[ids], regressor=self.regressor.vertex_rows(ids))
+
+
+def _write_kdsm_model(h5, model: KdsmModel) -> None:
+    from dataclasses import asdict
+
+    group = h5.require_group(KDSM_GROUP)
+    kdsm = model.kdsm
+    for name in KDSM_ARRAYS:
+        create_dataset(group, name, np.ascontiguousarray(getattr(kdsm, name)))
+    create_dataset(group, "rest", np.ascontiguousarray(model.rest, dtype=np.float32))
+    group.attrs["spacing"] = float(kdsm.spacing)
+    group.attrs["settings"] = json.dumps(asdict(kdsm.settings))
+    group.attrs["kdsm_info"] = json.dumps(kdsm.info)
+    group.attrs["info"] = json.dumps(model.info)
+    write_regressor(h5, model.regressor, KDSM_GROUP + "/regressor")
+
+
+def _read_kdsm_model(reader) -> KdsmModel:
+    """The mesh's arrays checked for shapes, index ranges and weights, its rest garment against V, its regressor like
+    pose_model/regressor."""
+    from ..kdsm.mesh import KDSM, KDSMSettings
+
+    spacing = reader.attribute(KDSM_GROUP, "spacing")
+    if not (np.ndim(spacing) == 0 and np.asarray(spacing).dtype.kind == "f" and 1e-4 <= spacing <= 1.0):
+        reader.fail(f"is {shown(spacing)!r}, expected a lattice step in [1e-4, 1] m")
+    settings = reader.json(KDSM_GROUP, "settings", "{}", dict)
+    kdsm_info = reader.json(KDSM_GROUP, "kdsm_info", "{}", dict)
+    info = reader.json(KDSM_GROUP, "info", "{}", dict)
+    g = KDSM_GROUP + "/"
+    fields = [("origin", np.float64, (3,), POINTS), ("dims", np.int64, (3,), (1, 100_000)),
+              ("vertices", np.float64, ("Nk", 3), POINTS), ("tets", np.int32, ("Tk", 4), (0, "Nk")),
+              ("class_inverse", np.float64, (12, 3, 3), (None, None)),
+              ("lattice_tets", np.int32, ("Lk",), (-1, "Tk")),
+              ("skin_indices", np.int32, ("Nk", N_INFLUENCES), (0, "B")),
+              ("skin_weights", np.float64, ("Nk", N_INFLUENCES), (0.0, 1.0)),
+              ("body_distance", np.float64, ("Nk",), (-1.0e3, 1.0e3)), ("rest", np.float32, ("V", 3), POINTS)]
+    values = {}
+    for name, dtype, spec, bounds in fields:
+        array = reader.numeric(g + name, dtype, spec)
+        if name != "class_inverse":  # NaN-free is all: classes not meshed are never read
+            reader.check_range(g + name, array, bounds, dtype)
+        values[name] = reader.cast(array, dtype)
+    reader.where = f"field '{g}lattice_tets'"
+    if int(np.prod(values["dims"])) * 12 != len(values["lattice_tets"]):
+        reader.fail(f"has {len(values['lattice_tets'])} entries, expected 12 per cube of dims "
+                    f"{values['dims'].tolist()}")
+    reader.where = f"field '{g}skin_weights'"
+    if np.abs(values["skin_weights"].sum(axis=1) - 1.0).max() > 1e-4:
+        reader.fail("has rows that do not sum to 1")
+    for name in ("Nk", "Tk", "Lk"):
+        reader.sizes.pop(name, None)
+    regressor = reader.regressor(KDSM_GROUP + "/regressor", required=True)
+    rest = values.pop("rest")
+    try:
+        kdsm_settings = KDSMSettings(**settings)
+    except TypeError as error:
+        reader.where = f"attribute '{KDSM_GROUP}/settings'"
+        reader.fail(f"does not hold KDSM settings ({error})")
+    kdsm = KDSM(spacing=float(spacing), settings=kdsm_settings, info=kdsm_info, **values)
+    return KdsmModel(kdsm=kdsm, rest=rest, regressor=regressor, info=info)
+
+
+register_codec(Codec(
+    "kdsm_model", KDSM_GROUP, 1, _write_kdsm_model, _read_kdsm_model,
+    upgrade="python -m agentdress_ros.evaluate.kdsm_comparison --database FILE --pack PACK --out FILE"))

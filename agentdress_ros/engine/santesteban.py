@@ -14,6 +14,8 @@ shape's rest pose, as AgentDress Eq. 10 does) instead of searching the posed bod
 from __future__ import annotations
 
 import copy
+import json
+from dataclasses import dataclass, field, replace
 
 import numba
 import numpy as np
@@ -21,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from ..body.kinematics import forward_kinematics, linear_blend_skinning, skin_point
 from ..garment.binding import vertex_normals
-from .database import Database
+from .database import Codec, Database, Regressor, register_codec, write_regressor
 from .kernels import prepare_pose
 from .pose_models import RegressorDecoder
 
@@ -141,3 +143,46 @@ class SantestebanModel:
                                        self._body_skin_i, self._body_skin_w, self.transforms, self.margin)
         self.out32[:] = self.out
         return self.out32
+
+
+# ---------------------------------------------------------------- storage of the garment_model/santesteban group
+
+
+SANTESTEBAN_GROUP = "garment_model/santesteban"
+
+
+@dataclass(frozen=True)
+class SantestebanArrays:
+    """The garment model of Santesteban et al. 2019 (group garment_model/santesteban): two regressors whose input is
+    the pose's D dofs followed by the 6 phenotypes (their `dofs` index that vector), each predicting a rest-frame
+    displacement (V, 3) of the garment: `fit` R_G(beta) and `wrinkles` R_L(beta, theta).
+
+    | path | shape, dtype | meaning |
+    |---|---|---|
+    | garment_model/santesteban/fit/..., .../wrinkles/... | as pose_model/regressor, dofs in [0, D + 6) | R_G(beta) and R_L(beta, theta), both rest-frame displacements of the garment; attrs info (JSON) |
+    """
+
+    fit: Regressor
+    wrinkles: Regressor
+    info: dict = field(default_factory=dict)
+
+    def vertex_rows(self, ids) -> "SantestebanArrays":
+        return replace(self, fit=self.fit.vertex_rows(ids), wrinkles=self.wrinkles.vertex_rows(ids))
+
+
+def _write_santesteban(h5, arrays: SantestebanArrays) -> None:
+    write_regressor(h5, arrays.fit, SANTESTEBAN_GROUP + "/fit")
+    write_regressor(h5, arrays.wrinkles, SANTESTEBAN_GROUP + "/wrinkles")
+    h5[SANTESTEBAN_GROUP].attrs["info"] = json.dumps(arrays.info)
+
+
+def _read_santesteban(reader) -> SantestebanArrays:
+    """Its regressors checked like pose_model/regressor, with inputs the D pose dofs and the 6 phenotypes."""
+    info = reader.json(SANTESTEBAN_GROUP, "info", "{}", dict)
+    fit = reader.with_phenotype_inputs(SANTESTEBAN_GROUP + "/fit", required=True)
+    wrinkles = reader.with_phenotype_inputs(SANTESTEBAN_GROUP + "/wrinkles", required=True)
+    return SantestebanArrays(fit=fit, wrinkles=wrinkles, info=info)
+
+
+register_codec(Codec("santesteban", SANTESTEBAN_GROUP, 1, _write_santesteban, _read_santesteban,
+                     upgrade="agentdress lab santesteban --database FILE --drapes DRAPES"))

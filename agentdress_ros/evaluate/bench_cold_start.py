@@ -39,9 +39,9 @@ print(json.dumps({"import_s": t1 - t0, "load_s": t2 - t1, "first_frame_s": t3 - 
 
 def node_engine_knobs(garment: str) -> dict:
     """The node's default EngineConfig overrides for one garment, as keyword arguments."""
-    from ..ros.params import PARAMETERS, engine_for, parse_engine
+    from ..ros.params import default_engine
 
-    return dict(engine_for(parse_engine(PARAMETERS["engine"].default), garment))
+    return default_engine(garment)
 
 
 def _children_cpu_s() -> float:

@@ -8,7 +8,7 @@ plus a margin); `frames` pack frames spread over the training clips (and, as for
 beta0 drapes) are inverse-embedded (offline.kdsm_training.training_targets, about 0.2 s a frame) into plastic
 displacements d; the Seed 2 regressor's machinery (offline.regressor.fit: PCA of d, an MLP from the same pose dofs to
 the PCA coefficients, the same settings) learns d(theta). The KDSM and the learned model are written into a copy of the
-database (`--out`, group pose_model/kdsm, engine.database.KdsmModel); the engine's `kdsm` pose model
+database (`--out`, group pose_model/kdsm, engine.pose_models.KdsmModel); the engine's `kdsm` pose model
 (engine.pose_models.KdsmPoseModel) predicts d, re-embeds rest + d and skins the parent tets (world positions).
 
 `--compare` runs the paper's comparison on the same frames, the same clip folds and the same network: (a) d learned
@@ -36,7 +36,8 @@ def main(argv=None) -> int:
     import argparse
 
     from ..body import AnnyBody
-    from ..engine.database import KdsmModel, read_database
+    from ..engine.database import read_database
+    from ..engine.pose_models import KdsmModel
     from ..kdsm.mesh import load_kdsm, save_kdsm
     from ..offline.sequences import load_sequence_pack
 

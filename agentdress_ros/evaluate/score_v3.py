@@ -119,9 +119,9 @@ def summarise(per_case: list, ceiling: list | None = None) -> dict:
 def node_default_rows(garment: str) -> list:
     """(name, EngineConfig fields or None for the skinned baseline) of the rows scored on v3: the skinned baseline,
     the examples synthesis, and the node's default engine for this garment."""
-    from ..ros.params import PARAMETERS, GarmentEngines
+    from ..ros.params import default_engine
 
-    default = GarmentEngines.parse("engine", PARAMETERS["engine"].default).for_garment(garment).as_dict()
+    default = default_engine(garment)
     return [("skinned template fitted to beta (no database)", None),
             ("synthesis, examples pose model", {"pose_model": "examples"}),
             ("node default (" + ", ".join(f"{k}={v}" for k, v in sorted(default.items())) + ")", default)]

@@ -5,7 +5,7 @@ plus a margin); `frames` pack frames spread over the training clips (and, as for
 beta0 drapes) are inverse-embedded (kdsm_training.training_targets, about 0.2 s a frame) into plastic displacements
 d; the Seed 2 regressor's machinery (offline.regressor.fit: PCA of d, an MLP from the same pose dofs to the PCA
 coefficients, the same settings) learns d(theta). The KDSM and the learned model are written into a copy of the
-database (group pose_model/kdsm, engine.database.KdsmModel); the engine's `kdsm` pose model
+database (group pose_model/kdsm, engine.pose_models.KdsmModel); the engine's `kdsm` pose model
 (engine.pose_models.KdsmPoseModel) predicts d, re-embeds rest + d and skins the parent tets (world positions).
 
 `compare` is the paper's comparison on the same frames, the same clip folds and the same network: (a) d learned in
@@ -348,12 +348,12 @@ def frame_cost(db_path, body, poses, repeats: int = 5) -> dict:
 
 
 def store_kdsm_model(source, path, model) -> Path:
-    """A copy of the database `source` with the KDSM group (engine.database.KdsmModel) written into it at `path`
+    """A copy of the database `source` with the KDSM group (engine.pose_models.KdsmModel) written into it at `path`
     (atomically: offline.regressor.store_in_database)."""
     from .regressor import store_in_database
-    from ..engine.database import write_kdsm_model
+    from ..engine.database import write_model
 
-    return store_in_database(path, lambda h5: write_kdsm_model(h5, model), source=source)
+    return store_in_database(path, lambda h5: write_model(h5, "kdsm_model", model), source=source)
 
 
 def targets_key(db_path, pack_path, settings: KdsmModelSettings, examples: bool = True,

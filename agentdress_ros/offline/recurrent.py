@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.database import Recurrent, read_database, write_recurrent
+from ..engine.database import read_database, write_model
+from ..engine.pose_models import Recurrent
 from .regressor import coefficients_of, kept_frames, mlp_outputs, pack_data, standardized_inputs, store_in_database
 
 
@@ -157,7 +158,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"{args.database}: no pose_model/regressor to add memory to; run `agentdress lab regressor`")
     runs = sequences(load_sequence_pack(args.pack), db, RegressorSettings().max_offset)
     recurrent, report = train(db, runs, settings)
-    store_in_database(args.database, lambda h5: write_recurrent(h5, recurrent))
+    store_in_database(args.database, lambda h5: write_model(h5, "recurrent", recurrent))
     print(json.dumps({"database": str(args.database), **report}))
     return 0
 

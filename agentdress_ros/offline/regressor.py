@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.database import Regressor, read_database, write_regressor
+from ..engine.database import Regressor, read_database, write_model
 from ..engine.pose_models import INPUT_CLIP, standardized
 from .sequences import check_training_clips, load_sequence_pack
 
@@ -518,7 +518,7 @@ def compact_copy(source, target) -> None:
 
 def store_regressor(path, regressor: Regressor) -> Path:
     """Write `regressor` into the database file at `path` (store_in_database)."""
-    return store_in_database(path, lambda h5: write_regressor(h5, regressor))
+    return store_in_database(path, lambda h5: write_model(h5, "regressor", regressor))
 
 
 def train_database_regressor(db_path, pack_path, settings: RegressorSettings, folds: int = 3, force: bool = False,

@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.database import SantestebanArrays, read_database, write_santesteban
+from ..engine.database import read_database, write_model
+from ..engine.santesteban import SantestebanArrays
 from .regressor import RegressorSettings, TrainingData, fit, pack_data, pose_dofs, predict, store_in_database
 
 N_PHENOTYPES = 6
@@ -157,7 +158,7 @@ def main(argv=None) -> int:
                        wrinkles=replace(defaults.wrinkles, seed=args.seed))
     db = read_database(path)
     arrays, report = train(db, AnnyBody(), drapes, load_sequence_pack(args.pack), settings)
-    store_in_database(path, lambda h5: write_santesteban(h5, arrays))
+    store_in_database(path, lambda h5: write_model(h5, "santesteban", arrays))
     print(json.dumps({"database": str(path), "drapes": str(drapes), **report}))
     return 0
 

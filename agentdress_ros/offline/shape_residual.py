@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.database import SHAPE_RESIDUAL_GROUP, read_database, write_regressor
+from ..engine.database import read_database, write_model
 from .regressor import (RegressorSettings, TrainingData, add_network_arguments, cross_validate, fit, network_settings,
                         predict, store_in_database, vertex_error)
 from .santesteban import input_dofs, inputs
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
     if not args.validate_only:
         before = Path(args.database).stat().st_size
         residual = replace(residual, info=info)
-        store_in_database(args.database, lambda h5: write_regressor(h5, residual, SHAPE_RESIDUAL_GROUP))
+        store_in_database(args.database, lambda h5: write_model(h5, "shape_residual", residual))
         info = {**info, "bytes_before": before, "bytes_after": Path(args.database).stat().st_size}
     print(json.dumps({"database": str(args.database), **info}, default=str))
     return 0

@@ -347,6 +347,11 @@ def validate(name: str, value):
     return spec.validate(name, value)
 
 
+def default_engine(garment: str) -> dict:
+    """The node's default engine knobs for one garment (EngineConfig fields), from the `engine` parameter's default."""
+    return GarmentEngines.parse("engine", PARAMETERS["engine"].default).for_garment(garment).as_dict()
+
+
 def garment_specs(config: dict) -> tuple[GarmentSpec, ...]:
     """The garments of checked parameter values (the node's, or an agent's with its overrides), in publishing
     order: each one's vertex budget, database, and for a garment with a database its engine knobs and model."""
