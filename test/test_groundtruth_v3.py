@@ -89,7 +89,7 @@ def test_a_case_is_kept_only_when_every_ramp_converged_extended_or_not(tmp_path)
     entries += [(drape_key(60, 1), ok)]
     path, pack = _pack_of(tmp_path, entries)
     report = summary(pack, [V3Case(0, "a@1", 0, "inside"), V3Case(1, "b@2", 1, "inside")])
-    assert report["kept"] == [0]
+    assert report["kept"] == [0] and report["not_converged"] == [1] and report["missing"] == []
     assert report["cases"][1]["drapes"][30] == {"frames": 200, "converged": True, "extended": True, "seconds": 40.0}
     assert report["cases"][1]["drapes"][45]["converged"] is False
     drapes, kept, _ = v3_drapes(path)

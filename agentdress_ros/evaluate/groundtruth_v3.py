@@ -128,8 +128,9 @@ def _final(drapes: dict, ramp: int, case: int):
 
 
 def summary(pack: dict, cases: list) -> dict:
-    """Per case and ramp: frames, converged, extended; the cases kept (every drape present and converged)."""
-    rows, kept = [], []
+    """Per case and ramp: frames, converged, extended; the cases kept (every drape present and converged), those
+    with a drape still missing, and those excluded because a drape converged neither at first nor extended."""
+    rows, kept, missing = [], [], []
     for case in cases:
         row = {"case": case.index, "pose": case.pose_label, "shape": case.shape_label, "drapes": {}}
         complete = True
@@ -137,6 +138,8 @@ def summary(pack: dict, cases: list) -> dict:
             final = _final(pack["drapes"], ramp, case.index)
             if final is None:
                 complete = False
+                if case.index not in missing:
+                    missing.append(case.index)
                 continue
             _, stats, extended = final
             row["drapes"][ramp] = {"frames": stats["frames"], "converged": bool(stats["converged"]),
@@ -146,7 +149,8 @@ def summary(pack: dict, cases: list) -> dict:
         if complete:
             kept.append(case.index)
     seconds = [d["seconds"] for r in rows for d in r["drapes"].values()]
-    return {"cases": rows, "kept": kept, "drapes": len(seconds), "cpu_hours": round(sum(seconds) / 3600, 2),
+    not_converged = [c.index for c in cases if c.index not in kept and c.index not in missing]
+    return {"cases": rows, "kept": kept, "missing": missing, "not_converged": not_converged, "drapes": len(seconds), "cpu_hours": round(sum(seconds) / 3600, 2),
             "environment": pack["environment"]}
 
 

@@ -149,7 +149,7 @@ def evaluate_v3(database, pack, out_dir=None, rows=None, progress: bool = True) 
     ceiling = [case_metrics(None, drapes[i], faces, inside[i])
                for i in tqdm(range(len(kept)), desc="ceiling", disable=not progress)]
     report = {"database": str(database), "pack": str(pack), "ramps": list(RAMPS), "cases": len(cases),
-              "kept": kept, "excluded": [c.index for c in cases if c.index not in kept],
+              "kept": kept, "excluded": convergence["not_converged"], "missing": convergence["missing"],
               "clips": sorted({c.pose_label.split("@")[0] for c in cases}),
               "convergence": convergence, "ceiling": summarise(ceiling), "rows": []}
     for name, config in tqdm(rows, desc="rows", disable=not progress):
@@ -177,9 +177,10 @@ def _cell(entry: dict | None, scale: float = 1.0, digits: int = 2, suffix: str =
 
 def markdown(report: dict) -> str:
     """The v3 table: one line for the ceiling, one per row, each figure with its 95 % interval over cases."""
-    excluded = report["excluded"]
+    excluded, missing = report["excluded"], report.get("missing", [])
     lines = [f"Ground truth v3: {len(report['kept'])} of {report['cases']} cases kept (every drape converged; "
-             f"excluded {excluded if excluded else 'none'}), ramps {report['ramps']}, clips "
+             f"excluded as not converged even when extended: {excluded if excluded else 'none'}"
+             f"{f'; not draped yet: {len(missing)} cases' if missing else ''}), ramps {report['ramps']}, clips "
              f"{', '.join(report['clips'])}. Means over cases with 95 % bootstrap intervals.", "",
              "| row | leave-one-out (cm) | ratio to ceiling | to mean drape (cm) | to nearest drape (cm) | "
              "surface (cm) | face centres inside |",
