@@ -170,7 +170,7 @@ worker.onmessage = (event) => {
     if (message.type === 'hello') panel.setPhenotypes(message.phenotypes);
     else if (message.type === 'status') panel.setStatus(message.source, message.status);
     else if (message.type === 'remove') removeMesh(message.key);
-    else if (message.type === 'error') console.warn('agentdress server:', message.message);
+    else if (message.type === 'error' || message.type === 'warning') console.warn('agentdress server:', message.message);
   }
 };
 

@@ -117,14 +117,22 @@ export class Panel {
       this.lastDraw = now;
       for (const [name, entry] of this.agents) {
         const status = this.statusOf(name);
-        const swatches = [...entry.garments.values()].map((c) => `<span class="swatch" style="background:${css(c)}"></span>`);
-        let text = `${swatches.join('')}<b>${name}</b> ${fps[name].toFixed(0)} fps in`;
+        // nodes built here, colours set through the CSSOM: the page's policy allows no inline style attributes
+        const swatches = [...entry.garments.values()].map((c) => {
+          const swatch = document.createElement('span');
+          swatch.className = 'swatch';
+          swatch.style.background = css(c);
+          return swatch;
+        });
+        const bold = document.createElement('b');
+        bold.textContent = name;
+        let text = ` ${fps[name].toFixed(0)} fps in`;
         if (status) {
           const synth = status.synthesis_ms ? status.synthesis_ms.p50 : undefined;
           if (status.tick_rate_hz !== undefined) text += ` · node ${Number(status.tick_rate_hz).toFixed(0)} Hz`;
           if (synth !== undefined) text += ` · ${Number(synth).toFixed(2)} ms`;
         }
-        entry.row.innerHTML = text;
+        entry.row.replaceChildren(...swatches, bold, text);
       }
     }
     return fps;
