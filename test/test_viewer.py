@@ -167,7 +167,7 @@ def _open(browser, url: str, xr: bool = False):
     page.on("pageerror", lambda error: errors.append(str(error)))
     page.on("console", lambda message: errors.append(message.text)  # what the page's security policy blocked
             if "Content Security Policy" in message.text else None)
-    page.goto(url)
+    page.goto(url, timeout=120_000)  # a loaded machine serves the page's modules slowly: generous timeouts
     page.wait_for_function("() => window.agentdress && window.agentdress.framesReceived > 3 && "
                            "Object.keys(window.agentdress.meshes).length >= 3", timeout=180_000)
     return context, page, errors
