@@ -156,6 +156,8 @@ def browser():
         browser.close()
 
 
+# Page conditions are given as functions ("() => ..."): Playwright runs a bare expression through eval, which the
+# page's Content-Security-Policy forbids, as it should.
 def _open(browser, url: str, xr: bool = False):
     context = browser.new_context(ignore_https_errors=True, viewport={"width": 800, "height": 600})
     if xr:
@@ -163,8 +165,10 @@ def _open(browser, url: str, xr: bool = False):
     page = context.new_page()
     errors = []
     page.on("pageerror", lambda error: errors.append(str(error)))
-    page.goto(url)
-    page.wait_for_function("window.agentdress && window.agentdress.framesReceived > 3 && "
+    page.on("console", lambda message: errors.append(message.text)  # what the page's security policy blocked
+            if "Content Security Policy" in message.text else None)
+    page.goto(url, timeout=120_000)  # a loaded machine serves the page's modules slowly: generous timeouts
+    page.wait_for_function("() => window.agentdress && window.agentdress.framesReceived > 3 && "
                            "Object.keys(window.agentdress.meshes).length >= 3", timeout=180_000)
     return context, page, errors
 
@@ -181,7 +185,7 @@ def test_the_page_draws_the_walking_dressed_agent_with_three_webgl(scene, browse
         }""")
         assert info["renderer"] == "WebGLRenderer" and info["three"] == "187", info
         assert info["webgl"] in ("webgl2", "webgl") and ("SwiftShader" in info["gl"] or "ANGLE" in info["gl"]), info
-        page.wait_for_function("agentdress.renderFrames > 5")
+        page.wait_for_function("() => agentdress.renderFrames > 5")
         first = _pixels(page)
         for _ in range(5):  # the walk loops every 1.1 s: a later frame may, rarely, repeat a pose
             page.wait_for_timeout(150 + random.random() * 500)
@@ -218,7 +222,7 @@ def test_the_page_skins_the_body_exactly_as_the_node_did(scene, browser):
     assert state["agentdress_node/body"]["skinned"] and not state["agentdress_node/tshirt"]["skinned"], state
     # nobody takes the body's points yet (the viewer takes its bones): the node poses it without vertices
     context, page, errors = _open(browser, url)
-    page.wait_for_function("(agentdress.status()['/agentdress_node'] || {counts: {}}).counts"
+    page.wait_for_function("() => (agentdress.status()['/agentdress_node'] || {counts: {}}).counts"
                            "['bones_only_frames:body'] > 0", timeout=60_000)
     context.close()
     clouds = {}
@@ -260,7 +264,7 @@ def test_enter_vr_runs_the_xr_render_loop(scene, browser):
         assert button.inner_text().strip().upper() == "ENTER VR"
         assert page.evaluate("agentdress.xrFrames") == 0
         page.evaluate("document.getElementById('vr-button').click()")  # a user's click (no hit-test wait)
-        page.wait_for_function("agentdress.xrFrames > 5 && window.xrSession.frames > 5", timeout=90_000)
+        page.wait_for_function("() => agentdress.xrFrames > 5 && window.xrSession.frames > 5", timeout=90_000)
         assert button.inner_text().strip().upper() == "EXIT VR"
         assert not errors, errors
     finally:
@@ -284,18 +288,18 @@ def test_a_shape_slider_reaches_the_node_and_changes_the_mesh(scene, browser):
     url, _ = scene
     context, page, errors = _open(browser, url)
     try:
-        page.wait_for_function("document.querySelectorAll('#sliders input').length === 6", timeout=120_000)
+        page.wait_for_function("() => document.querySelectorAll('#sliders input').length === 6", timeout=120_000)
         before = _tshirt_girth(page)
         page.evaluate("""() => { const input = document.querySelector('#sliders input[name=weight]');
                                  input.value = 1.0; input.dispatchEvent(new Event('input')); }""")
-        page.wait_for_function("Object.values(agentdress.status()).some(s => s.shape && s.shape[3] > 0.99)",
+        page.wait_for_function("() => Object.values(agentdress.status()).some(s => s.shape && s.shape[3] > 0.99)",
                                timeout=120_000)
         page.wait_for_timeout(3000)  # the refit on the node's worker, then its frames
         after = _tshirt_girth(page)
         assert after > before + 0.005, f"T-shirt girth {before:.3f} -> {after:.3f} m after weight 0.5 -> 1"
         page.evaluate("""() => { const input = document.querySelector('#sliders input[name=weight]');
                                  input.value = 0.5; input.dispatchEvent(new Event('input')); }""")
-        page.wait_for_function("Object.values(agentdress.status()).some(s => s.shape && s.shape[3] < 0.51)",
+        page.wait_for_function("() => Object.values(agentdress.status()).some(s => s.shape && s.shape[3] < 0.51)",
                                timeout=120_000)
         assert not errors, errors
     finally:
@@ -376,7 +380,7 @@ def test_frames_per_second_per_agent_of_a_crowd_of_ten(browser, tmp_path):
         assert {m["agent"] for m in state.values()} == expected, state
         context, page, errors = _open(browser, url)
         try:
-            page.wait_for_function(f"Object.keys(agentdress.meshes).length >= {3 * len(agents)}", timeout=120_000)
+            page.wait_for_function(f"() => Object.keys(agentdress.meshes).length >= {3 * len(agents)}", timeout=120_000)
             page.wait_for_timeout(2000)
             samples = []
             for _ in range(6):
@@ -412,7 +416,7 @@ def test_make_run_screenshot(browser, tmp_path):
         context = browser.new_context(ignore_https_errors=True, viewport={"width": 960, "height": 720})
         page = context.new_page()
         page.goto(url)
-        page.wait_for_function("agentdress.framesReceived > 30", timeout=60_000)
+        page.wait_for_function("() => agentdress.framesReceived > 30", timeout=60_000)
         page.wait_for_timeout(3000)
         page.screenshot(path=str(folder / "make_run.png"), timeout=180_000)
         context.close()
@@ -478,7 +482,7 @@ def test_walk_gif(browser, tmp_path):
         page_context = browser.new_context(ignore_https_errors=True, viewport={"width": 640, "height": 720})
         page = page_context.new_page()
         page.goto(url)
-        page.wait_for_function("agentdress.framesReceived > 1", timeout=120_000)
+        page.wait_for_function("() => agentdress.framesReceived > 1", timeout=120_000)
         page.evaluate("document.getElementById('panel').style.display = 'none'")
         for index in range(0, len(motion.rotvecs), step):
             for _ in range(100):  # the same pose until the viewer holds its frame for every mesh
@@ -528,7 +532,7 @@ def test_crowd_gif(browser, tmp_path):
         context = browser.new_context(ignore_https_errors=True, viewport={"width": 800, "height": 500})
         page = context.new_page()
         page.goto(url)
-        page.wait_for_function(f"Object.keys(agentdress.meshes).length >= {3 * len(agents)}", timeout=120_000)
+        page.wait_for_function(f"() => Object.keys(agentdress.meshes).length >= {3 * len(agents)}", timeout=120_000)
         page.evaluate("document.getElementById('panel').style.display = 'none'")
         page.wait_for_timeout(3000)
         for _ in range(24):

@@ -10,7 +10,8 @@ shape slider publishes `std_msgs/Float32MultiArray` on the agent's body-shape to
 page skins it on the GPU (three.js SkinnedMesh), exactly as the node did.
 
 Security: the page, its files and the socket answer 403 without the random token printed in the URL at start; the
-certificate is self-signed, made at first start (~/.config/agentdress/tls), so a browser asks once to accept it.
+certificate is self-signed, made at first start (~/.config/agentdress/tls), so a browser asks once to accept it; a
+certificate or key that does not load, or a key other users can read, stops the start with what to do (docs/viewer.md).
 A headset on USB reaches the machine's localhost with `adb reverse tcp:8765 tcp:8765` (open the printed URL there).
 """
 from __future__ import annotations
@@ -20,10 +21,11 @@ import ipaddress
 import json
 import re
 import sys
+import threading
 
 from ..viewer.state import DisplayScene
-from ..viewer.server import DisplayServer, NpmMissing, web_root
-from ..viewer.tls import ensure_certificate
+from ..viewer.server import MAX_CLIENTS, DisplayServer, NpmMissing, web_root
+from ..viewer.tls import CertificateError, ensure_certificate, server_context
 
 __all__ = ["RosBridge", "build_parser", "exposure_warning", "view_main"]
 
@@ -50,6 +52,8 @@ class RosBridge:
         self.skinned: set[str] = set()
         self.status_sources: set[str] = set()
         self.shape_publishers: dict = {}
+        self._shape_lock = threading.Lock()  # publish_shape runs on the server's worker threads, one per client
+        self.topics: frozenset = frozenset()  # the graph's topic names at the last discovery (for shape topics)
         self.discover()
         self.node.create_timer(1.0, self.discover)
 
@@ -61,6 +65,7 @@ class RosBridge:
         from .messages import mesh_to_arrays, serialized_cloud_to_vertices
 
         topics = dict(self.node.get_topic_names_and_types())
+        self.topics = frozenset(topics)
         for topic, types in topics.items():
             match = MESH_TOPIC.match(topic)
             if not match or "shape_msgs/msg/Mesh" not in types:
@@ -140,20 +145,21 @@ class RosBridge:
 
     def shape_topic(self, agent: str) -> str:
         """The body-shape input of an agent: `/<last name>/body_shape` if the graph has it (crowd), else
-        `/body_shape`."""
+        `/body_shape`. From the graph of the last discovery (every second, on the ROS thread): no graph lookup per
+        shape."""
         own = f"/{agent.rsplit('/', 1)[-1]}/body_shape"
-        topics = dict(self.node.get_topic_names_and_types())
-        return own if "/" in agent and own in topics else "/body_shape"
+        return own if "/" in agent and own in self.topics else "/body_shape"
 
     def publish_shape(self, agent: str, values):
-        """Called from the display server's thread (rclpy publishers are thread-safe)."""
+        """Called from a worker thread of the display server (rclpy publishers are thread-safe)."""
         from std_msgs.msg import Float32MultiArray
 
         topic = self.shape_topic(agent)
-        publisher = self.shape_publishers.get(topic)
-        if publisher is None:
-            publisher = self.shape_publishers[topic] = self.node.create_publisher(Float32MultiArray, topic,
-                                                                                  self.shape_qos)
+        with self._shape_lock:
+            publisher = self.shape_publishers.get(topic)
+            if publisher is None:
+                publisher = self.shape_publishers[topic] = self.node.create_publisher(Float32MultiArray, topic,
+                                                                                      self.shape_qos)
         publisher.publish(Float32MultiArray(data=[float(v) for v in values]))
 
     def spin(self):
@@ -197,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cert-dir", default=None, help="where the self-signed certificate is kept "
                                                          "(default ~/.config/agentdress/tls)")
     parser.add_argument("--web", default=None, help="client folder (default: web/ of this checkout)")
+    parser.add_argument("--max-clients", type=int, default=MAX_CLIENTS,
+                        help=f"WebSockets served at once (default {MAX_CLIENTS}); one more is closed with code 1013")
     return parser
 
 
@@ -209,7 +217,10 @@ def view_main(argv=None) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
-    args = build_parser().parse_args(argv[: len(argv) - len(ros_args)])
+    parser = build_parser()
+    args = parser.parse_args(argv[: len(argv) - len(ros_args)])
+    if args.max_clients < 1:
+        parser.error("--max-clients must be 1 or more")
     try:
         web = web_root(args.web)
     except NpmMissing as error:
@@ -217,8 +228,12 @@ def view_main(argv=None) -> int:
         return 2
     certificate = None
     if not args.no_tls:
-        cert, key, made = ensure_certificate(args.cert_dir)
-        certificate = (cert, key)
+        try:
+            cert, key, made = ensure_certificate(args.cert_dir)
+            certificate = server_context(cert, key)
+        except CertificateError as error:
+            print(f"agentdress view: error: {error}", file=sys.stderr)
+            return 2
         if made:
             print(f"agentdress view: made a self-signed certificate {cert} (the browser asks once to accept it)",
                   flush=True)
@@ -226,7 +241,7 @@ def view_main(argv=None) -> int:
     rclpy.init(args=["agentdress_viewer", *ros_args])
     bridge = RosBridge(scene, args.node)
     server = DisplayServer(scene, web, args.host, args.port, certificate, on_shape=bridge.publish_shape,
-                           phenotypes=PHENOTYPE_NAMES)
+                           phenotypes=PHENOTYPE_NAMES, max_clients=args.max_clients)
     try:
         server.start()
     except OSError as error:

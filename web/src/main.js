@@ -75,7 +75,8 @@ renderer.xr.addEventListener('sessionstart', () => { world.position.set(0, 0, -1
 renderer.xr.addEventListener('sessionend', () => { world.position.set(0, 0, 0); });
 
 const meshes = new Map(); // key "agent/garment" -> {mesh, agent, garment, dirty}
-const panel = new Panel(document.getElementById('panel'), (agent, values) => send({ type: 'shape', agent, values }));
+const panel = new Panel((agent, values) => send({ type: 'shape', agent, values }));
+stats.world = world; // the three.js objects of the meshes (tests)
 
 // A skinned mesh (the body): its rest, bone indices and weights once; each frame only its bone transforms, which
 // the GPU applies (linear blend skinning, as the node does). Each bone's matrixWorld is the frame's rest-to-posed
@@ -107,7 +108,7 @@ function setBones(mesh, buffer) {
 
 function setMesh(header, faces, vertices, indices, weights) {
   const old = meshes.get(header.key);
-  if (old) { world.remove(old.mesh); old.mesh.geometry.dispose(); old.mesh.material.dispose(); }
+  if (old) disposeMesh(old.mesh);
   const geometry = new THREE.BufferGeometry();
   const position = new THREE.BufferAttribute(new Float32Array(vertices), 3);
   if (!header.skin) position.setUsage(THREE.DynamicDrawUsage);
@@ -170,7 +171,7 @@ worker.onmessage = (event) => {
     if (message.type === 'hello') panel.setPhenotypes(message.phenotypes);
     else if (message.type === 'status') panel.setStatus(message.source, message.status);
     else if (message.type === 'remove') removeMesh(message.key);
-    else if (message.type === 'error') console.warn('agentdress server:', message.message);
+    else if (message.type === 'error' || message.type === 'warning') console.warn('agentdress server:', message.message);
   }
 };
 
@@ -181,11 +182,19 @@ function connect() {
   worker.postMessage({ kind: 'want' });
 }
 
+// Frees what a mesh holds on the GPU: its geometry's buffers, its material's program use, a skinned mesh's bone
+// texture.
+function disposeMesh(mesh) {
+  world.remove(mesh);
+  mesh.geometry.dispose();
+  mesh.material.dispose();
+  if (mesh.isSkinnedMesh) mesh.skeleton.dispose();
+}
+
 function removeMesh(key) {
   const entry = meshes.get(key);
   if (!entry) return;
-  world.remove(entry.mesh);
-  entry.mesh.geometry.dispose();
+  disposeMesh(entry.mesh);
   meshes.delete(key);
   delete stats.meshes[key];
   panel.removeMesh(key);
