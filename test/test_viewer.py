@@ -118,7 +118,7 @@ def _pixels(page) -> np.ndarray:
 
 
 def _garment_pixels(image: np.ndarray) -> tuple[float, float]:
-    """Shares of T-shirt blue and of trousers' grey-blue pixels (the colours of display/scene.py, lit)."""
+    """Shares of T-shirt blue and of trousers' grey-blue pixels (the colours of viewer/state.py, lit)."""
     r, g, b = image[..., 0], image[..., 1], image[..., 2]
     blue = (b > r + 60) & (b > g + 25)
     grey = (np.abs(r - g) < 14) & (b >= r) & (b - r < 40) & (r > 25) & (r < 140)

@@ -21,7 +21,7 @@ and at most `max_clients` sockets are served at once: one more is closed with co
   /<token>/lil-gui.css           the styles of three's lil-gui (the panel), taken from its module: lil-gui would
                                  inject them as a <style>, which the page's policy does not allow
   /<token>/state.json            {key: {agent, garment, vertices, faces, frames, stamp, skinned}} (scripts, tests)
-  /<token>/ws                    WebSocket: binary mesh and frame messages (display/scene.py), JSON text messages
+  /<token>/ws                    WebSocket: binary mesh and frame messages (viewer/state.py), JSON text messages
                                  {"type": "hello" | "status" | "remove" | "error" | "warning"}; the client sends
                                  {"type": "shape", "agent", "values": [6 phenotypes in [0, 1]]}
 """
