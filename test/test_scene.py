@@ -103,7 +103,7 @@ def test_scheduler_lowers_the_farthest_first_and_never_the_near_ones():
     tiers = [0, 0, 1, 1, 1, 2]
     decisions = {d.key: d for d in schedule(_candidates(distances, tiers), budget_ms=3.6)}
     assert decisions["a0"].level == 0 and decisions["a1"].level == 0  # near: untouched
-    assert decisions["a4"].level == 3 and decisions["a5"].level == 3 or decisions["a5"].level is None
+    assert decisions["a4"].level == 3 and (decisions["a5"].level == 3 or decisions["a5"].level is None)
     assert decisions["a2"].level == 1 and not decisions["a2"].degraded  # nearest mid agent kept
     total = sum(d.estimate for d in decisions.values())
     assert total <= 3.6 + 1e-9
