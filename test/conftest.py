@@ -18,8 +18,9 @@ DATA = ROOT / "data"
 TSHIRT_DATABASE = DATA / "tshirt_default.h5"
 TSHIRT_PACK = DATA / "tshirt_sequences.npz"
 
-# Measured per-file durations of one run (test files not named take well under 20 s): a worker picks the next file
-# when it finishes one, so the long ones go first and the short ones fill the end.
+# The files that take longest (the offline build, the evaluation and the drapes, then the live nodes and the trained
+# pose models), longest first: a worker picks the next file when it finishes one, so the long ones start at once and
+# the short ones fill the end.
 SLOWEST_FIRST = ("test_build.py", "test_eval.py", "test_sim.py", "test_faults.py", "test_viewer.py",
                  "test_kdsm.py", "test_regressor.py", "test_node.py", "test_crowd_node.py", "test_shape_residual.py",
                  "test_node_bad_input.py", "test_santesteban.py", "test_recurrent.py", "test_packaging.py")

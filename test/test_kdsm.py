@@ -430,7 +430,8 @@ def test_the_body_projection_takes_the_kdsm_pose_models_output_out_of_the_body(b
         on, off = engine.synthesize(pose).copy(), plain.synthesize(pose).copy()
         np.testing.assert_allclose(engine.fork(projection=0).synthesize(pose), off, atol=1e-6, rtol=0)
         moved = np.linalg.norm(on - off, axis=1) > 1e-7
-        assert 0 < moved.sum() < len(on) and np.abs(on - off).max() < 0.1  # a push out, not a jump
+        # a push out, not a jump: at most 1.4-1.8 cm on these four poses (measured), 3 cm allowed
+        assert 0 < moved.sum() < len(on) and np.abs(on - off).max() < 0.03
         test = InsideTest(body, database.beta0, pose)
         truly_on += test.shares(on)[2]
         truly_off += test.shares(off)[2]

@@ -303,6 +303,7 @@ def test_live_node_survives_a_1khz_flood(live):
     motion = make_motion("wave", fps=1000.0, duration=2.0)
     names = list(JOINT_NAMES)
     n_clouds = len(state["clouds"])
+    rejected = state["status"][-1]["rejected"].get("joint_states/non_finite", 0)  # earlier tests' NaNs included
     start, sent = time.monotonic(), 0
     while time.monotonic() - start < 2.0:
         # 1 kHz, good and bad mixed: every 10th message has a NaN
@@ -322,7 +323,9 @@ def test_live_node_survives_a_1khz_flood(live):
     assert new, f"no cloud during the flood of {sent} JointStates"
     for cloud in new:
         assert np.isfinite(cloud_to_vertices(cloud)).all()
-    assert state["status"][-1]["rejected"].get("joint_states/non_finite", 0) > 2
+    # every 10th message had a NaN: those that reached the node are counted (best effort may drop some of them)
+    assert spin_until(executor, lambda: state["status"][-1]["rejected"].get("joint_states/non_finite", 0) > rejected,
+                      10.0), state["status"][-1]["rejected"]
 
 
 def test_missing_database_stops_the_node_with_the_file_named(tmp_path, ros_domain):
