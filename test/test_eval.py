@@ -102,8 +102,8 @@ def test_stability_cases_stay_finite_and_near_the_skinned_garment(quick_eval):
 
 
 def test_ground_truth_is_cached_and_reused(quick_eval, body):
-    """The held-out set made again from the quick evaluation's cache simulates nothing, and the skinned baseline
-    and the node default measure on it what the evaluation reported."""
+    """The held-out set made again from the quick evaluation's cache simulates nothing (drapes and the dynamic
+    sequence alike), and the skinned baseline and the node default measure on it what the evaluation reported."""
     from agentdress_ros.engine import read_database
     from agentdress_ros.evaluate.evaluate import InsideTest, _model, accuracy, held_out_config
     from agentdress_ros.evaluate.testset import make_held_out_set
@@ -111,7 +111,7 @@ def test_ground_truth_is_cached_and_reused(quick_eval, body):
 
     folder, report = quick_eval
     clip = shared_path("mocap", "cmu", f"{HELD_OUT_CLIPS[0]}.bvh")
-    cached = sorted(p for p in (folder / "cache").rglob("*") if p.is_file())
+    cached = sorted((folder / "cache").rglob("*.npz"))  # the drapes and the dynamic sequence's chunks
     drapes = sorted((folder / "cache" / "drapes").glob("*.npz"))
     assert len(drapes) == report["test_set"]["drapes"] == 2
     stamps = [p.stat().st_mtime_ns for p in cached]
@@ -119,8 +119,8 @@ def test_ground_truth_is_cached_and_reused(quick_eval, body):
     garment = make_garment(db.garment, body, db.n_vertices)
     test = make_held_out_set(db, body, garment, held_out_config("v2", [clip], quick=True), folder / "cache",
                              workers=0, progress=False)
-    assert sorted(p for p in (folder / "cache").rglob("*") if p.is_file()) == cached
-    assert [p.stat().st_mtime_ns for p in cached] == stamps  # no drape simulated twice
+    assert sorted((folder / "cache").rglob("*.npz")) == cached
+    assert [p.stat().st_mtime_ns for p in cached] == stamps  # nothing simulated twice
     inside = [[InsideTest(body, beta, pose) for beta in test.betas] for pose in test.poses]
     reported = {r["name"]: r["error_mean_cm"] for r in report["rows"]}
     rows = trade_rows(db.n_anchors, db.n_components)

@@ -81,9 +81,10 @@ def test_drape_converges_outside_the_body(draped):
 
 @needs_newton
 def test_drape_strain_is_bounded(draped):
-    assert draped.strain_mean < 0.05
-    assert draped.strain_max < 0.5
-    assert draped.compression_max < 0.5
+    # measured: mean stretch 1.6 %, most stretched triangle 7.0 %, most compressed 7.3 %; bounds about twice that
+    assert draped.strain_mean < 0.03
+    assert draped.strain_max < 0.15
+    assert draped.compression_max < 0.15
 
 
 @needs_newton
@@ -92,12 +93,12 @@ def test_gravity_pulls_the_cloth_down_but_it_stays_on_the_body(scene, draped):
 
     faces, rest, warm, body_vertices, body_faces = scene
     drop = warm[:, 2].mean() - draped.vertices[:, 2].mean()
-    assert 0.002 < drop < 0.10, drop
+    assert 0.025 < drop < 0.05, drop  # 3.7 cm measured
     assert draped.displacement_mean == pytest.approx(np.linalg.norm(draped.vertices - warm, axis=1).mean())
     # It hangs on the shoulders: most of the shirt is still within a few cm of the skin, none fell off.
     clearance = signed_clearance(draped.vertices, body_vertices, body_faces)
-    assert np.median(clearance) < 0.03
-    assert clearance.max() < 0.15
+    assert np.median(clearance) < 0.02  # 1.1 cm measured
+    assert clearance.max() < 0.08  # 5.1 cm measured
 
 
 @needs_newton
