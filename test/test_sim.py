@@ -143,7 +143,8 @@ def test_a_pinned_waistband_holds_trousers_up(trousers):
     drop_held = warm[:, 2].mean() - held.vertices[:, 2].mean()
     drop_loose = warm[:, 2].mean() - loose.vertices[:, 2].mean()
     assert held.converged and held.inside_count == 0
-    assert drop_held < 0.03 and drop_loose > drop_held + 0.01, (drop_held, drop_loose)
+    # measured: held 1.4 cm, loose 11.3 cm
+    assert drop_held < 0.025 and drop_loose > drop_held + 0.05, (drop_held, drop_loose)
 
 
 def test_bad_inputs_are_rejected_before_simulating():
