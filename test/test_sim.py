@@ -313,8 +313,10 @@ def test_a_resumed_sequence_gives_the_frames_of_an_uninterrupted_run(swing_seque
     assert np.isfinite(a["positions"]).all() and a["positions"].shape == (7, garment.n_vertices, 3)
     np.testing.assert_allclose(a["root_velocity"][:, 1], -0.3 * 30.0 / 6.0, rtol=1e-5)
     # the cloth moved with the body (root translation of 30 cm)
-    assert abs(a["positions"][-1, :, 1].mean() - a["positions"][0, :, 1].mean() + 0.3) < 0.05
-    assert runs["whole"]["max_cloth_speed"] > 0.0 and runs["whole"]["max_body_speed"] > 0.0
+    assert abs(a["positions"][-1, :, 1].mean() - a["positions"][0, :, 1].mean() + 0.3) < 0.03  # 28.2 cm measured
+    # 25 cm or more in 6 frames at 30 fps: some frame moves some vertex at 1.25 m/s or faster (3.2 m/s measured for
+    # the cloth, 2.8 m/s for the body)
+    assert runs["whole"]["max_cloth_speed"] > 1.25 and runs["whole"]["max_body_speed"] > 1.25
 
 
 @needs_newton
@@ -348,7 +350,7 @@ def test_stepping_variants_continue_from_the_reference_checkpoint(body, swing_se
     reference, same, coarser = result["rows"]
     assert reference["settings"] == "reference" and reference["frames"] == 4 and reference["ratio_to_baseline"] == 1
     assert same["distance_mm"]["max_vertex"] == 0.0  # moving frames never replay a graph: the same stepping
-    assert coarser["distance_mm"]["mean"] > 0.0 and coarser["seconds_per_mocap_frame"] > 0.0
+    assert 15.0 < coarser["distance_mm"]["mean"] < 60.0  # half the substeps: 29.6 mm from the reference (measured)
     assert np.isfinite([row["distance_mm"]["max_vertex"] for row in result["rows"]]).all()
     whole = load_sequence(folder / garment.name / "whole")["positions"]
     assert np.array_equal(result["baseline_positions"], whole[3:])
