@@ -54,8 +54,10 @@ $(WEB_STAMP): web/package.json web/package-lock.json
 	cd web && npm ci --ignore-scripts --no-audit --no-fund
 	touch $@
 
+# Two xdist workers, a test file at a time each (a module's fixtures, such as the tiny build, are made once), in the
+# order of test/conftest.py (slowest first); the 15 slowest tests are listed at the end.
 test: setup-test $(WEB_STAMP)
-	$(BIN)/python -m pytest -q -rs test
+	$(BIN)/python -m pytest -q -rs -n 2 --dist loadfile --no-loadscope-reorder --durations=15 test
 
 # Node + demo motion + web viewer on the default configuration (prints the URL to open); Ctrl-C stops all three.
 run: setup

@@ -28,7 +28,7 @@ TINY_ARGS = ["--garment", "tshirt", "--vertices", "700", "--anchors", "2", "--sh
 
 
 @pytest.fixture(scope="module")
-def tiny_build(tmp_path_factory):
+def tiny_build(tmp_path_factory, warp_kernels):
     out = tmp_path_factory.mktemp("build") / "tiny.h5"
     report = build_database(BuildConfig(**TINY), out, workers=2, progress=False, command="test tiny build",
                             pack_drapes=out.with_name("tiny.drapes.npz"))
@@ -86,23 +86,32 @@ def _drape_files(out: Path):
 
 
 def test_killed_build_resumes_to_the_same_database(tiny_build, tmp_path):
+    """A build stopped part way (here: the tiny build's work folder less its last anchor's drapes and a sequence
+    frame) is killed again while it drapes what is missing, then resumed: no database file from the killed run,
+    finished drapes reused (not redone), and the same database as the uninterrupted tiny build."""
     reference_path, _ = tiny_build
-    out = tmp_path / "resumed.h5"
+    out = tmp_path / "db.h5"
+    work = _copy_work(tiny_build, tmp_path)
+    missing = ["anchor_0001_02", "anchor_0001_03", "anchor_0001_04", "sequence_0001_00"]
+    for key in missing:
+        (work / "drapes" / f"{key}.npz").unlink()
+    kept = {p.name for p in _drape_files(out)}
     command = [sys.executable, "-m", "agentdress_ros.cli", "build", *TINY_ARGS, "--workers", "0", "--out", str(out)]
     process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 300
-    while len(_drape_files(out)) < 3 and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.2)
+    while len(_drape_files(out)) < len(kept) + 1 and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
     assert process.poll() is None, f"the build ended before it could be killed: {process.stderr.read()[-2000:]}"
-    os.killpg(process.pid, signal.SIGKILL)  # at any moment: here, with drapes done and one in flight
+    os.killpg(process.pid, signal.SIGKILL)  # at any moment: here, with a missing drape done and another in flight
     process.wait()
     assert not out.exists(), "no database file from a killed build"
     done = {p.name: p.stat().st_mtime_ns for p in _drape_files(out)}
-    assert len(done) >= 3
+    assert kept < set(done) and len(done) < len(kept) + len(missing)
 
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
     for name, mtime in done.items():  # finished drapes are reused, not redone
-        assert (out.parent / (out.name + ".work") / "drapes" / name).stat().st_mtime_ns == mtime
+        assert (work / "drapes" / name).stat().st_mtime_ns == mtime
+    assert {p.stem for p in _drape_files(out)} == {p.stem for p in _drape_files(reference_path)}
     resumed, reference = read_database(out), read_database(reference_path)
     for field in ("rest", "anchor_poses", "pca_mean", "pca_components", "ridge", "example_drapes", "sequence_drapes",
                   "region_dof", "joint_weights"):

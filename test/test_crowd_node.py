@@ -11,9 +11,7 @@ decisions (frames per agent, degraded frames), not on wall time.
 from __future__ import annotations
 
 import json
-import random
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,35 +19,20 @@ import pytest
 rclpy = pytest.importorskip("rclpy", reason="rclpy (ros-jazzy-rclpy wheels, requirements/runtime.txt) is not importable")
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
 from std_msgs.msg import Float32MultiArray, String  # noqa: E402
 
 from agentdress_ros.motion.joint_names import pose_to_joint_positions  # noqa: E402
 from agentdress_ros.motion.procedural import make_motion  # noqa: E402
-from agentdress_ros.ros.harness import ChildProcess, node_args, ros_env, ros_node, spin_until  # noqa: E402
+from agentdress_ros.ros.harness import ros_node, spin_until  # noqa: E402
 from agentdress_ros.ros.messages import cloud_to_vertices  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[1] / "data"
-TSHIRT = str(DATA / "tshirt_default.h5")
+from .conftest import TSHIRT_DATABASE, qos, running_node, set_parameters  # noqa: E402
+
+TSHIRT = str(TSHIRT_DATABASE)
 ENGINE = ["pose_model=examples", "decay=false"]  # no frame-to-frame history: each cloud is a function of its pose
 BOB_SHAPE = [0.2, 0.6, 0.4, 0.8, 0.3, 0.5]
-BEST_EFFORT = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
-
-
-def _start(tmp_path_factory, name, params):
-    domain = random.SystemRandom().randint(1, 200)
-    env = ros_env(domain, str(tmp_path_factory.mktemp(f"{name}_log")))
-    child = ChildProcess(node_args(params), env, tmp_path_factory.mktemp(name) / "node.log")
-    if not child.wait_for_output("crowd ready", timeout=180.0):
-        child.stop()
-        pytest.fail(f"node did not start:\n{child.output()}")
-    return child, domain
-
-
-def _stop(child):
-    rc = child.stop()
-    assert rc == 0, f"node exited with {rc} on SIGINT:\n{child.output()}"
+BEST_EFFORT = qos("best_effort", 10)
 
 
 class Client:
@@ -113,31 +96,21 @@ class Client:
         return self.status[-1]
 
     def set_parameters(self, **values):
-        from rcl_interfaces.srv import SetParameters
-        from rclpy.parameter import Parameter
-
-        service = self.node.create_client(SetParameters, "/agentdress_node/set_parameters")
-        assert service.wait_for_service(timeout_sec=20.0)
-        request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
-                                                    for k, v in values.items()])
-        future = service.call_async(request)
-        assert spin_until(self.executor, future.done, 20.0)
-        self.node.destroy_client(service)
-        return future.result().results
+        return set_parameters(self.node, self.executor, **values)
 
 
 @pytest.fixture(scope="module")
-def crowd(tmp_path_factory):
+def crowd(tmp_path_factory, ros_domain):
     params = {"agents": ["alice", "bob"], "garments": ["tshirt"], "garment_databases": [f"tshirt:{TSHIRT}"],
               "engine": ENGINE, "status_rate_hz": 4.0, "agent.bob.shape": BOB_SHAPE,
               "agent.bob.frame_id": "bob_frame", "agent.bob.origin": [3.0, 0.0, 0.0], "realtime_priority": 5}
-    child, domain = _start(tmp_path_factory, "crowd", params)
-    with ros_node("agentdress_crowd_test", domain) as (node, executor):
+    domain = ros_domain()
+    with running_node(tmp_path_factory.mktemp("crowd"), domain, params, ready="crowd ready", timeout=180.0) as child, \
+            ros_node("agentdress_crowd_test", domain) as (node, executor):
         client = Client(node, executor, ["alice", "bob", "carol"])
         assert spin_until(executor, lambda: client.joints["bob"].get_subscription_count() > 0 and client.status,
                           30.0), f"the node was not discovered:\n{child.output()}"
         yield client, child
-    _stop(child)
 
 
 def _engine(body, beta):
@@ -322,20 +295,20 @@ def test_an_agent_out_of_view_is_not_published_and_returns_with_the_view(crowd):
 
 
 @pytest.fixture(scope="module")
-def expensive(tmp_path_factory):
+def expensive(tmp_path_factory, ros_domain):
     distances = {"n1": 1.5, "m1": 5.0, "m2": 6.0, "f1": 12.0, "d1": 25.0, "d2": 30.0, "d3": 35.0, "d4": 40.0}
     params = {"agents": list(distances), "garments": ["tshirt"], "garment_databases": [f"tshirt:{TSHIRT}"],
               "status_rate_hz": 4.0, "budget_ms": 8.0, "answer_on_arrival": False}
     for name, x in distances.items():
         params[f"agent.{name}.origin"] = [x, 0.0, 0.0]
         params[f"agent.{name}.extra_cost_ms"] = 3.0  # 8 x 3 ms = 24 ms a tick if nothing were held back
-    child, domain = _start(tmp_path_factory, "expensive", params)
-    with ros_node("agentdress_budget_test", domain) as (node, executor):
+    domain = ros_domain()
+    with running_node(tmp_path_factory.mktemp("expensive"), domain, params, ready="crowd ready",
+                      timeout=180.0) as child, ros_node("agentdress_budget_test", domain) as (node, executor):
         client = Client(node, executor, list(distances))
         assert spin_until(executor, lambda: client.joints["n1"].get_subscription_count() > 0 and client.status,
                           30.0), f"the node was not discovered:\n{child.output()}"
         yield client, child, distances
-    _stop(child)
 
 
 def test_the_budget_holds_with_expensive_agents_and_spares_the_near_one(expensive):
@@ -359,7 +332,8 @@ def test_the_budget_holds_with_expensive_agents_and_spares_the_near_one(expensiv
     detail, detail0 = crowd["agents_detail"], start["agents_detail"]
     frames = {n: detail[n]["frames"] - detail0[n]["frames"] for n in distances}
     near_frames = frames.pop("n1")
-    assert near_frames >= 30, (near_frames, crowd)  # dressed on its poses (best effort may drop some under load)
+    # how many frames fit in the 3 s depends on the machine's load (`agentdress bench crowd` measures it); what the
+    # budget decides does not: the near agent is dressed at least as often as any other
     assert all(near_frames >= count for count in frames.values()), (near_frames, frames)
     assert all(count > 0 for count in frames.values()), frames  # every far agent takes its turn (or its max_wait)
     # Unheld, each of the 7 others would be dressed on each of its poses, as often as the near one; held to

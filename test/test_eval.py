@@ -14,12 +14,13 @@ from agentdress_ros.evaluate.testset import HELD_OUT_CLIPS
 
 ROOT = Path(__file__).resolve().parents[1]
 DATABASE = ROOT / "data" / "tshirt_default.h5"
+TROUSERS_DATABASE = ROOT / "data" / "trousers_default.h5"
 GROUPS = {"baseline", "pose model", "default", "neighbors", "pose neighbors", "anchors", "components", "refinement",
           "ablation", "precision"}
 
 
 @pytest.fixture(scope="module")
-def quick_eval(tmp_path_factory):
+def quick_eval(tmp_path_factory, warp_kernels):
     if not DATABASE.is_file():
         pytest.skip(f"{DATABASE} is not built")
     clip = shared_path("mocap", "cmu", f"{HELD_OUT_CLIPS[0]}.bvh")
@@ -71,7 +72,8 @@ def test_quick_eval_measures_every_row_along_the_dynamic_ground_truth(quick_eval
     assert [r["name"] for r in entry["rows"]] == [r["name"] for r in report["rows"]]
     for r in entry["rows"]:
         assert all(math.isfinite(r[k]) and r[k] >= 0.0 for k in ("error_mean_cm", "error_max_frame_cm", "jitter_mm"))
-        assert r["error_mean_cm"] < 20.0, r  # the garment follows the moving body
+        # the garment follows the moving body: every row measured 2.1-2.7 cm along these 4 frames (issue 44's run)
+        assert r["error_mean_cm"] < 4.0, r
     assert "Along the dynamic ground truth" in (folder / "report" / "trade.md").read_text()
 
 
@@ -100,18 +102,32 @@ def test_stability_cases_stay_finite_and_near_the_skinned_garment(quick_eval):
         assert case["max_deviation_from_skinned_cm"] < 10.0, case  # 5.5 cm measured at the training range's ends
 
 
-def test_ground_truth_is_cached_and_reused(quick_eval, tmp_path):
+def test_ground_truth_is_cached_and_reused(quick_eval, body):
+    """The held-out set made again from the quick evaluation's cache simulates nothing (drapes and the dynamic
+    sequence alike), and the skinned baseline and the node default measure on it what the evaluation reported."""
+    from agentdress_ros.engine import read_database
+    from agentdress_ros.evaluate.evaluate import InsideTest, _model, accuracy, held_out_config
+    from agentdress_ros.evaluate.testset import make_held_out_set
+    from agentdress_ros.garment import make_garment
+
     folder, report = quick_eval
     clip = shared_path("mocap", "cmu", f"{HELD_OUT_CLIPS[0]}.bvh")
+    cached = sorted((folder / "cache").rglob("*.npz"))  # the drapes and the dynamic sequence's chunks
     drapes = sorted((folder / "cache" / "drapes").glob("*.npz"))
     assert len(drapes) == report["test_set"]["drapes"] == 2
-    stamps = [p.stat().st_mtime_ns for p in drapes]
-    again = evaluate(DATABASE, tmp_path / "again", folder / "cache", clips=[clip], quick=True, workers=0,
-                     progress=False, test_set="v2")
-    assert [p.stat().st_mtime_ns for p in drapes] == stamps  # no drape simulated twice
-    first = {r["name"]: r["error_mean_cm"] for r in report["rows"]}
-    for r in again["rows"]:
-        np.testing.assert_allclose(r["error_mean_cm"], first[r["name"]], rtol=1e-5)
+    stamps = [p.stat().st_mtime_ns for p in cached]
+    db = read_database(DATABASE)
+    garment = make_garment(db.garment, body, db.n_vertices)
+    test = make_held_out_set(db, body, garment, held_out_config("v2", [clip], quick=True), folder / "cache",
+                             workers=0, progress=False)
+    assert sorted((folder / "cache").rglob("*.npz")) == cached
+    assert [p.stat().st_mtime_ns for p in cached] == stamps  # nothing simulated twice
+    inside = [[InsideTest(body, beta, pose) for beta in test.betas] for pose in test.poses]
+    reported = {r["name"]: r["error_mean_cm"] for r in report["rows"]}
+    rows = trade_rows(db.n_anchors, db.n_components)
+    for row in (rows[0], next(r for r in rows if r.group == "default")):
+        again = accuracy(_model(row, db, body, garment), test, inside)
+        np.testing.assert_allclose(again["error_mean_cm"], reported[row.name], rtol=1e-5, err_msg=row.name)
 
 
 def test_training_clips_are_refused(quick_eval, tmp_path):
@@ -164,6 +180,44 @@ def test_node_default_beats_the_skinned_baseline_on_the_shipped_ground_truth(bod
         assert r["inside_overlap_fraction"] + r["inside_true_fraction"] == pytest.approx(r["inside_fraction"])
         assert 0.0 < r["inside_fraction"] < 0.2
     assert default_ci[1] < base_ci[0], (base_ci, default_ci)
+
+
+def test_trousers_default_beats_the_skinned_baseline_on_the_shipped_ground_truth(body):
+    """The trousers' headline: on the shipped v2 held-out newton drapes (docs/eval/v2/trousers: 40 poses x 3 shapes,
+    unpacked under the v2 set's key, no drape simulated here) the node default's 95 % interval of the mean error
+    lies wholly below the skinned template's, and both rows measure what the shipped report says (within 0.01 cm)."""
+    from types import SimpleNamespace
+
+    from agentdress_ros.build.jobs import read_drape_pack
+    from agentdress_ros.engine import read_database
+    from agentdress_ros.evaluate.evaluate import InsideTest, _model, accuracy
+    from agentdress_ros.evaluate.testset import held_out_poses, held_out_shapes, held_out_v2, test_set_key
+    from agentdress_ros.garment import make_garment
+
+    shipped = ROOT / "docs" / "eval" / "v2" / "trousers"
+    db = read_database(TROUSERS_DATABASE)
+    garment = make_garment(db.garment, body, db.n_vertices)
+    config = held_out_v2(shared_path("mocap", "cmu"))
+    poses = held_out_poses(body, config)[0]
+    betas = held_out_shapes(db, config)[0]
+    pack = read_drape_pack(shipped / "ground_truth_drapes.npz")
+    packed, ours = json.loads(pack["plan_key"]), json.loads(test_set_key(db, config, betas))
+    # the key names the dynamic clips by the path they were read from (another checkout's): the same clips by name
+    assert [Path(c).stem for c in packed["dynamic_clips"]] == [Path(c).stem for c in ours["dynamic_clips"]]
+    assert {**packed, "dynamic_clips": ours["dynamic_clips"]} == ours
+    assert len(pack["drapes"]) == len(poses) * len(betas) == 40 * 3
+    drapes = np.stack([np.stack([pack["drapes"][f"test_{p:04d}_{k:02d}"][0] for k in range(len(betas))])
+                       for p in range(len(poses))])
+    test = SimpleNamespace(poses=poses, betas=betas, drapes=drapes)
+    inside = [[InsideTest(body, beta, pose) for beta in test.betas] for pose in test.poses]
+    rows = trade_rows(db.n_anchors, db.n_components)
+    baseline, default = rows[0], next(r for r in rows if r.group == "default")
+    results = [accuracy(_model(row, db, body, garment), test, inside) for row in (baseline, default)]
+    (base_ci, default_ci), _ = bootstrap_intervals([r["error_per_case_cm"] for r in results])
+    assert default_ci[1] < base_ci[0], (base_ci, default_ci)
+    reported = {r["name"]: r["error_mean_cm"] for r in json.loads((shipped / "report.json").read_text())["rows"]}
+    for row, result in zip((baseline, default), results):
+        assert abs(result["error_mean_cm"] - reported[row.name]) < 0.01, (row.name, result["error_mean_cm"])
 
 
 def test_pose_models_at_beta0_rerun_from_the_shipped_ground_truth(body, tmp_path):

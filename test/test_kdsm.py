@@ -2,6 +2,7 @@
 kernel. Checked against analytic truth where there is one (BCC volumes, identity and rigid poses, barycentric round
 trips) and against the shipped T-shirt sequence pack for the inverse embedding. A coarse lattice keeps it quick."""
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -34,11 +35,6 @@ SPACING = 0.05  # coarse: a few seconds to build; the paper's numbers are measur
 # the T-shirt pack's drapes reach 15 cm (99th percentile of frames) to 23 cm (farthest frame) from the posed body
 # (offline.kdsm_training.drape_clearance); the four frames used here stay well inside 21 cm
 THICKNESS = 0.21
-
-
-@pytest.fixture(scope="module")
-def database():
-    return read_database(DATABASE)
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +108,8 @@ def test_every_rest_tet_has_positive_volume_and_the_shell_holds_the_garment(kdsm
     np.testing.assert_allclose(kdsm.class_inverse[lattice_of_tet % 12] @ edges, np.broadcast_to(np.eye(3), edges.shape),
                                atol=1e-9)
     assert kdsm.info["tets"] == len(kdsm.tets) > 10_000
-    assert kdsm.info["build_seconds"] > 0
+    assert kdsm.info["vertices"] == len(kdsm.vertices) and kdsm.info["min_rest_volume"] == pytest.approx(volumes.min(), rel=1e-9)
+    assert "build_seconds" in kdsm.info
     # skin weights like the body's: at most 4 influences, non-negative, rows summing to 1
     assert kdsm.skin_weights.shape[1] == 4 and kdsm.skin_weights.min() >= 0
     np.testing.assert_allclose(kdsm.skin_weights.sum(axis=1), 1.0, atol=1e-12)
@@ -434,7 +431,8 @@ def test_the_body_projection_takes_the_kdsm_pose_models_output_out_of_the_body(b
         on, off = engine.synthesize(pose).copy(), plain.synthesize(pose).copy()
         np.testing.assert_allclose(engine.fork(projection=0).synthesize(pose), off, atol=1e-6, rtol=0)
         moved = np.linalg.norm(on - off, axis=1) > 1e-7
-        assert 0 < moved.sum() < len(on) and np.abs(on - off).max() < 0.1  # a push out, not a jump
+        # a push out, not a jump: at most 1.4-1.8 cm on these four poses (measured), 3 cm allowed
+        assert 0 < moved.sum() < len(on) and np.abs(on - off).max() < 0.03
         test = InsideTest(body, database.beta0, pose)
         truly_on += test.shares(on)[2]
         truly_off += test.shares(off)[2]
@@ -484,7 +482,10 @@ def test_the_pose_model_benchmark_times_every_pose_model_on_a_real_database(data
     rows = report["pose_models"]
     assert set(rows) == {"examples", "kdsm", "examples,projection=8"}
     assert rows["examples"]["synthesis_vs_examples"] == 1.0
-    assert all(row["synthesis_ms"] > 0 and row["pose_model_ms"] > 0 for row in rows.values())
+    for row in rows.values():  # each row timed, and its ratio to the first taken from its own time
+        assert math.isfinite(row["pose_model_ms"]) and row["synthesis_ms"] > 0.0
+        assert row["synthesis_vs_examples"] == pytest.approx(row["synthesis_ms"] / rows["examples"]["synthesis_ms"],
+                                                             abs=0.01)
 
 
 @pytest.mark.filterwarnings("ignore:A column-vector y was passed")  # two training frames: one component

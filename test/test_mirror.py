@@ -11,14 +11,8 @@ from agentdress_ros.offline.mirror import (REFLECTION, Mirror, bone_twins, mirro
                                          twin_name)
 from agentdress_ros.offline.regressor import (RegressorSettings, example_data, pose_dofs, settled_data,
                                             validate_settled_copies)
-from agentdress_ros.engine import read_database
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def database():
-    return read_database(ROOT / "data" / "tshirt_default.h5")
 
 
 @pytest.fixture(scope="module")

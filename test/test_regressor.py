@@ -27,11 +27,6 @@ TINY = RegressorSettings(components=6, hidden=(12,), alpha=1.0, examples=0, max_
 
 
 @pytest.fixture(scope="module")
-def database():
-    return read_database(DATABASE)
-
-
-@pytest.fixture(scope="module")
 def frames(database):
     """Every 8th frame of three clips of the shipped T-shirt pack."""
     data = pack_data(load_sequence_pack(PACK), database)

@@ -1,8 +1,8 @@
 """Real DDS between two processes with the ROS 2 Jazzy wheels from PyPI (rclpy + Fast DDS), no mocks.
 
 A publisher runs in a child Python process (the script below, run with `python -c`); this pytest process subscribes
-through its own rclpy context. Every run uses a random ROS_DOMAIN_ID (1-200) so that parallel runs on one machine do
-not hear each other, and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST so discovery stays on the loopback interface.
+through its own rclpy context. The module uses a ROS_DOMAIN_ID of its own (conftest's ros_domain: no other test of the
+run, nor usually another run, on it) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST so discovery stays on the loopback interface.
 Every wait is bounded. The tests skip only when rclpy cannot be imported.
 
 Environment: nothing has to be set by hand. The ros-wheels-bootstrapper wheel's .pth file re-executes each Python
@@ -12,7 +12,6 @@ environment; the default middleware is rmw_fastrtps_cpp.
 from __future__ import annotations
 
 import os
-import random
 import selectors
 import subprocess
 import sys
@@ -27,7 +26,6 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from agentdress_ros.ros import harness  # noqa: E402
 
-DOMAIN_ID = random.SystemRandom().randint(1, 200)
 JOINT_NAMES = ["Hips_tx", "Hips_ty", "Hips_tz", "LeftArm_rx", "LeftArm_ry", "LeftArm_rz"]
 POSITIONS = [0.125, -0.5, 0.9375, 1.0e-3, -3.0, 0.333333]
 GRID = 110  # the published mesh: a GRID x GRID vertex sheet (12,100 vertices, 23,762 triangles: garment-sized)
@@ -83,10 +81,15 @@ rclpy.shutdown()
 
 
 @pytest.fixture(scope="module")
-def ros_env(tmp_path_factory):
+def domain(ros_domain):
+    return ros_domain()
+
+
+@pytest.fixture(scope="module")
+def ros_env(tmp_path_factory, domain):
     """The environment of both processes: this run's domain, loopback-only discovery, logs in a temp dir."""
     settings = {
-        "ROS_DOMAIN_ID": str(DOMAIN_ID),
+        "ROS_DOMAIN_ID": str(domain),
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
         "ROS_LOG_DIR": str(tmp_path_factory.mktemp("ros_log")),
     }
@@ -103,9 +106,9 @@ def ros_env(tmp_path_factory):
 
 
 @contextmanager
-def ros_node(name: str):
+def ros_node(name: str, domain: int):
     """A node in a private rclpy context (so other tests' use of the global context does not interfere)."""
-    with harness.ros_node(name, DOMAIN_ID) as pair:
+    with harness.ros_node(name, domain) as pair:
         yield pair
 
 
@@ -135,10 +138,10 @@ def child_stderr(stderr) -> str:
     return stderr.read()[-3000:]
 
 
-def test_joint_state_crosses_processes(ros_env, tmp_path):
+def test_joint_state_crosses_processes(ros_env, domain, tmp_path):
     topic = f"agentdress_test_joint_states_{os.getpid()}"
     received = []
-    with ros_node("agentdress_test_subscriber") as (node, executor):
+    with ros_node("agentdress_test_subscriber", domain) as (node, executor):
         from sensor_msgs.msg import JointState
 
         node.create_subscription(JointState, topic, received.append, 10)
@@ -153,7 +156,7 @@ def test_joint_state_crosses_processes(ros_env, tmp_path):
                 proc.kill()
                 proc.wait()
         assert rc == 0, f"publisher process failed ({rc}):\n{child_stderr(stderr)}"
-    assert received, f"no JointState arrived within {waited:.1f} s on domain {DOMAIN_ID}:\n{child_stderr(stderr)}"
+    assert received, f"no JointState arrived within {waited:.1f} s on domain {domain}:\n{child_stderr(stderr)}"
     for msg in received:
         assert list(msg.name) == JOINT_NAMES
         assert list(msg.position) == POSITIONS  # float64 on the wire: bit-exact
@@ -163,7 +166,7 @@ def test_joint_state_crosses_processes(ros_env, tmp_path):
     assert [msg.velocity[0] for msg in received] == [0.0, 1.0, 2.0, 3.0, 4.0]
 
 
-def test_transient_local_mesh_reaches_a_late_subscriber(ros_env, tmp_path):
+def test_transient_local_mesh_reaches_a_late_subscriber(ros_env, domain, tmp_path):
     """The topology (shape_msgs/Mesh) is published once; a display client that subscribes later still gets it.
 
     Measured here: with LOCALHOST discovery the late participant is discovered after ~3 s (0.24 s with the default
@@ -181,7 +184,7 @@ def test_transient_local_mesh_reaches_a_late_subscriber(ros_env, tmp_path):
         time.sleep(0.5)  # later still: the sample has been sitting in the writer's history
 
         received = []
-        with ros_node("agentdress_test_late_subscriber") as (node, executor):
+        with ros_node("agentdress_test_late_subscriber", domain) as (node, executor):
             from shape_msgs.msg import Mesh
 
             qos = QoSProfile(

@@ -30,11 +30,6 @@ TINY = SantestebanSettings(fit=RegressorSettings(components=4, hidden=(6,), alph
 
 
 @pytest.fixture(scope="module")
-def database():
-    return read_database(DATABASE)
-
-
-@pytest.fixture(scope="module")
 def pack():
     return load_sequence_pack(PACK)
 

@@ -105,8 +105,11 @@ def test_scheduler_lowers_the_farthest_first_and_never_the_near_ones():
     tiers = [0, 0, 1, 1, 1, 2]
     decisions = {d.key: d for d in schedule(_candidates(distances, tiers), budget_ms=3.6)}
     assert decisions["a0"].level == 0 and decisions["a1"].level == 0  # near: untouched
-    assert decisions["a4"].level == 3 and decisions["a5"].level == 3 or decisions["a5"].level is None
-    assert decisions["a2"].level == 1 and not decisions["a2"].degraded  # nearest mid agent kept
+    # 4.0 ms asked: the farthest (a5) goes first, and since its lowest level costs what its tier does it waits this
+    # tick (3.8 ms); then a4 drops from mid to far (3.4 ms): within the budget, so the nearer mid agents are kept
+    assert decisions["a5"].level is None and decisions["a5"].degraded
+    assert decisions["a4"].level == 2 and decisions["a4"].degraded
+    assert all(decisions[k].level == 1 and not decisions[k].degraded for k in ("a2", "a3"))
     total = sum(d.estimate for d in decisions.values())
     assert total <= 3.6 + 1e-9
     # The farthest is touched before any nearer one: lowering is monotone in distance.

@@ -61,7 +61,7 @@ def scene(body):
 
 
 @pytest.fixture(scope="module")
-def draped(scene):
+def draped(scene, warp_kernels):
     from agentdress_ros.sim import drape
 
     faces, rest, warm, body_vertices, body_faces = scene
@@ -81,9 +81,10 @@ def test_drape_converges_outside_the_body(draped):
 
 @needs_newton
 def test_drape_strain_is_bounded(draped):
-    assert draped.strain_mean < 0.05
-    assert draped.strain_max < 0.5
-    assert draped.compression_max < 0.5
+    # measured: mean stretch 1.6 %, most stretched triangle 7.0 %, most compressed 7.3 %; bounds about twice that
+    assert draped.strain_mean < 0.03
+    assert draped.strain_max < 0.15
+    assert draped.compression_max < 0.15
 
 
 @needs_newton
@@ -92,22 +93,25 @@ def test_gravity_pulls_the_cloth_down_but_it_stays_on_the_body(scene, draped):
 
     faces, rest, warm, body_vertices, body_faces = scene
     drop = warm[:, 2].mean() - draped.vertices[:, 2].mean()
-    assert 0.002 < drop < 0.10, drop
+    assert 0.025 < drop < 0.05, drop  # 3.7 cm measured
     assert draped.displacement_mean == pytest.approx(np.linalg.norm(draped.vertices - warm, axis=1).mean())
     # It hangs on the shoulders: most of the shirt is still within a few cm of the skin, none fell off.
     clearance = signed_clearance(draped.vertices, body_vertices, body_faces)
-    assert np.median(clearance) < 0.03
-    assert clearance.max() < 0.15
+    assert np.median(clearance) < 0.02  # 1.1 cm measured
+    assert clearance.max() < 0.08  # 5.1 cm measured
 
 
 @needs_newton
-def test_drape_is_deterministic_on_cpu(scene, draped):
+def test_drape_is_deterministic_on_cpu(scene, warp_kernels):
+    """Two drapes of the 1,200-vertex shirt, cut at 20 frames (in contact with the shoulders from the first one):
+    the same frames, bit for bit."""
     from agentdress_ros.sim import drape
 
     faces, rest, warm, body_vertices, body_faces = scene
-    again = drape(warm, faces, body_vertices, body_faces, DrapeSettings(), rest_vertices=rest)
-    assert again.frames == draped.frames
-    assert np.array_equal(again.vertices, draped.vertices)
+    short = DrapeSettings(max_frames=20, min_frames=20)
+    first, again = (drape(warm, faces, body_vertices, body_faces, short, rest_vertices=rest) for _ in range(2))
+    assert first.frames == again.frames == 20
+    assert np.array_equal(again.vertices, first.vertices) and not np.array_equal(first.vertices, warm)
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +143,8 @@ def test_a_pinned_waistband_holds_trousers_up(trousers):
     drop_held = warm[:, 2].mean() - held.vertices[:, 2].mean()
     drop_loose = warm[:, 2].mean() - loose.vertices[:, 2].mean()
     assert held.converged and held.inside_count == 0
-    assert drop_held < 0.03 and drop_loose > drop_held + 0.01, (drop_held, drop_loose)
+    # measured: held 1.4 cm, loose 11.3 cm
+    assert drop_held < 0.025 and drop_loose > drop_held + 0.05, (drop_held, drop_loose)
 
 
 def test_bad_inputs_are_rejected_before_simulating():
@@ -270,7 +275,7 @@ def test_a_warm_start_can_carry_a_finished_drape_onto_another_shape(body, arms_d
     pasted = run_drape_job(DrapeJob("anchor", 0, 1, pose, heavy, "tshirt", 400, short, warm_key=source["key"],
                                     warm_pose=pose, warm_beta=beta0), source["vertices"])
     assert pasted["stats"]["ramp_frames"] == 0
-    assert np.linalg.norm(pasted["vertices"] - carried["vertices"], axis=1).mean() < 0.05
+    assert np.linalg.norm(pasted["vertices"] - carried["vertices"], axis=1).mean() < 0.015  # 0.42 cm measured
 
 
 @pytest.fixture(scope="module")
@@ -309,8 +314,10 @@ def test_a_resumed_sequence_gives_the_frames_of_an_uninterrupted_run(swing_seque
     assert np.isfinite(a["positions"]).all() and a["positions"].shape == (7, garment.n_vertices, 3)
     np.testing.assert_allclose(a["root_velocity"][:, 1], -0.3 * 30.0 / 6.0, rtol=1e-5)
     # the cloth moved with the body (root translation of 30 cm)
-    assert abs(a["positions"][-1, :, 1].mean() - a["positions"][0, :, 1].mean() + 0.3) < 0.05
-    assert runs["whole"]["max_cloth_speed"] > 0.0 and runs["whole"]["max_body_speed"] > 0.0
+    assert abs(a["positions"][-1, :, 1].mean() - a["positions"][0, :, 1].mean() + 0.3) < 0.03  # 28.2 cm measured
+    # 25 cm or more in 6 frames at 30 fps: some frame moves some vertex at 1.25 m/s or faster (3.2 m/s measured for
+    # the cloth, 2.8 m/s for the body)
+    assert runs["whole"]["max_cloth_speed"] > 1.25 and runs["whole"]["max_body_speed"] > 1.25
 
 
 @needs_newton
@@ -344,7 +351,7 @@ def test_stepping_variants_continue_from_the_reference_checkpoint(body, swing_se
     reference, same, coarser = result["rows"]
     assert reference["settings"] == "reference" and reference["frames"] == 4 and reference["ratio_to_baseline"] == 1
     assert same["distance_mm"]["max_vertex"] == 0.0  # moving frames never replay a graph: the same stepping
-    assert coarser["distance_mm"]["mean"] > 0.0 and coarser["seconds_per_mocap_frame"] > 0.0
+    assert 15.0 < coarser["distance_mm"]["mean"] < 60.0  # half the substeps: 29.6 mm from the reference (measured)
     assert np.isfinite([row["distance_mm"]["max_vertex"] for row in result["rows"]]).all()
     whole = load_sequence(folder / garment.name / "whole")["positions"]
     assert np.array_equal(result["baseline_positions"], whole[3:])

@@ -9,18 +9,21 @@ def spin_until_shutdown(spin) -> None:
     rclpy's signal handler shuts the context down; depending on where the executor is at that moment, spin raises
     KeyboardInterrupt, ExternalShutdownException, or - between two waits, or while a message is taken - an
     RCLError (a RuntimeError) about the invalid context. Any other error, or one while the context is still valid,
-    propagates.
+    propagates. After such an RCLError the same SIGINT's KeyboardInterrupt (rclpy's handler chains Python's) is
+    still pending and lands while the RCLError is handled: it is caught there too, else it would end a clean stop
+    with a traceback and exit status -2.
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
     try:
-        spin()
+        try:
+            spin()
+        except RuntimeError:
+            if rclpy.ok():
+                raise
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except RuntimeError:
-        if rclpy.ok():
-            raise
 
 
 def run_publisher(node) -> int:

@@ -162,17 +162,18 @@ class RosBridge:
                                                                                       self.shape_qos)
         publisher.publish(Float32MultiArray(data=[float(v) for v in values]))
 
-    def spin(self):
+    def spin(self, ready=lambda: None):
         """Spins on rclpy's events executor: a crowd's clouds arrive by the thousand a second, and the default
-        executor, which rebuilds its wait set over every subscription per wake-up, spent 4x the CPU on them."""
+        executor, which rebuilds its wait set over every subscription per wake-up, spent 4x the CPU on them.
+        ready() is called once the executor is made: a Ctrl-C from then on (or while it is made) is a clean stop."""
         from rclpy.experimental import EventsExecutor
 
         from .spin import spin_until_shutdown
 
-        executor = EventsExecutor()
-        executor.add_node(self.node)
-
         def spin():  # its spin() neither ran this node's timer nor returned on shutdown (rclpy 7.1); spin_once does
+            executor = EventsExecutor()
+            executor.add_node(self.node)
+            ready()
             while self.rclpy.ok():
                 executor.spin_once(timeout_sec=0.1)
 
@@ -252,9 +253,8 @@ def view_main(argv=None) -> int:
     warning = exposure_warning(args.host)
     if warning:
         print(warning, file=sys.stderr, flush=True)
-    print(f"agentdress view: open {server.url()}", flush=True)
     try:
-        bridge.spin()
+        bridge.spin(ready=lambda: print(f"agentdress view: open {server.url()}", flush=True))
     finally:
         server.stop()
         bridge.node.destroy_node()
