@@ -188,7 +188,7 @@ def test_trousers_default_beats_the_skinned_baseline_on_the_shipped_ground_truth
     lies wholly below the skinned template's, and both rows measure what the shipped report says (within 0.01 cm)."""
     from types import SimpleNamespace
 
-    from agentdress_ros.build.jobs import read_drape_pack
+    from agentdress_ros.offline.jobs import read_drape_pack
     from agentdress_ros.engine import read_database
     from agentdress_ros.evaluate.evaluate import InsideTest, _model, accuracy
     from agentdress_ros.evaluate.testset import held_out_poses, held_out_shapes, held_out_v2, test_set_key

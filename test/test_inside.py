@@ -129,7 +129,7 @@ def test_the_split_on_anny_arms_down(body):
     arm (inside one part, far from the overlap) went through the skin."""
     from agentdress_ros.garment.binding import vertex_normals
     from agentdress_ros.garment.inside import BodyInside
-    from agentdress_ros.sim.posing import visible_body
+    from agentdress_ros.body.model import visible_body
 
     ids, faces = visible_body(body)
     shape = body.shape()

@@ -26,7 +26,7 @@ def split_shares(database, folder, radii=RADII, engine: dict | None = None, prog
     from ..engine import Engine, EngineConfig, read_database
     from ..garment.inside import BodyInside
     from ..offline.jobs import read_drape_pack
-    from ..sim.posing import visible_body
+    from ..body.model import visible_body
     from .evaluate import synthesize_poses
     from .testset import held_out_poses, held_out_shapes, held_out_v2
 
