@@ -52,7 +52,7 @@ PASSTHROUGH = (
 # frame and what cheaper stepping gives up), pose-models (the engine's cost per frame with each pose model).
 BENCH_PASSTHROUGH = {"node": (".evaluate.bench_node", "main"), "crowd": (".evaluate.bench_crowd", "main"),
                      "sequence": (".evaluate.bench_sequence", "main"),
-                     "pose-models": (".evaluate.bench_pose_models", "main")}
+                     "pose-models": (".evaluate.bench_pose_models", "main"), "look": (".evaluate.look", "main")}
 
 
 def _passthrough(module: str, function: str):

@@ -235,3 +235,4 @@ window.addEventListener('resize', () => {
 
 renderer.setAnimationLoop(render);
 connect();
+if (new URLSearchParams(window.location.search).has('look')) import('./look.js').then((look) => look.install({ THREE, renderer, scene, world, meshes, stats }));
