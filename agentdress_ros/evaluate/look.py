@@ -302,6 +302,7 @@ class LookSession:
             self.page = self.browser.new_page(ignore_https_errors=True, viewport={"width": 640, "height": 480})
             self.errors = []
             self.page.on("pageerror", lambda error: self.errors.append(str(error)))
+            self.page.set_default_timeout(300_000)  # a loaded machine draws and loads slowly in software
             self.page.goto(self.url + "?look=1")
             self.page.wait_for_function("window.agentdressLook !== undefined", timeout=120_000)
             self.page.evaluate("document.getElementById('panel').style.display = 'none'")
@@ -353,7 +354,7 @@ class LookSession:
             self.shape = np.asarray(shape, dtype=np.float64)
             self.page.wait_for_function(f"""Object.values(agentdress.status()).some((s) => s.shape &&
                 s.shape.every((b, i) => Math.abs(b - {json.dumps(self.shape.tolist())}[i]) < 1e-4))""",
-                                        timeout=timeout * 1000)
+                                        timeout=timeout * 1000)  # the node has rebuilt for it
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             stamp = self._publish(rotvecs, root)
@@ -459,10 +460,10 @@ def check(clips=("walk",), shapes=None, frames_per_clip: int = 10, views=VIEWS, 
     on purpose."""
     import tempfile
 
-    from ..body import REFERENCE_SHAPE, AnnyBody
+    from ..body import AnnyBody
     from ..models.garment_models import BodyModel
 
-    shapes = [tuple(REFERENCE_SHAPE)] if shapes is None else [tuple(s) for s in shapes]
+    shapes = [None] if shapes is None else [tuple(s) for s in shapes]  # None: the node's default shape
     frames = frames_of(clips, shapes, frames_per_clip)
     whole = BodyModel(AnnyBody()).faces
     shares = {kind: [] for kind in KINDS}
@@ -474,7 +475,7 @@ def check(clips=("walk",), shapes=None, frames_per_clip: int = 10, views=VIEWS, 
         if hide_faces is not None:
             session.hide(hide_faces)
         for n, (clip, index, rotvecs, root, shape) in enumerate(frames):
-            session.show(rotvecs, root, shape)
+            session.show(rotvecs, root, shape, timeout=900.0 if n == 0 else 300.0)  # the first: the node starts
             captured = session.capture(views)
             counts, frame_edges = frame_report(captured)
             for garment, e in frame_edges.items():
@@ -482,7 +483,7 @@ def check(clips=("walk",), shapes=None, frames_per_clip: int = 10, views=VIEWS, 
                     edges.setdefault(garment, {}).setdefault(name, []).append(value)
             for v, c in enumerate(counts):
                 fills.append(c["fill"])
-                row = {"clip": clip, "frame": index, "shape": list(shape), "view": v, "silhouette": c["silhouette"]}
+                row = {"clip": clip, "frame": index, "shape": None if shape is None else list(shape), "view": v, "silhouette": c["silhouette"]}
                 for kind in KINDS:
                     share = c[kind] / max(c["silhouette"], 1)
                     shares[kind].append(share)
@@ -497,7 +498,7 @@ def check(clips=("walk",), shapes=None, frames_per_clip: int = 10, views=VIEWS, 
         errors = list(session.errors)
     codes = getattr(session, "codes", {})
     report = {
-        "frames": len(frames), "views": list(views), "clips": list(clips), "shapes": [list(s) for s in shapes],
+        "frames": len(frames), "views": list(views), "clips": list(clips), "shapes": [None if s is None else list(s) for s in shapes],
         "image": SIZE, "frame_views": len(rows), "seconds": time.monotonic() - started,
         "share_of_silhouette": {kind: summary(shares[kind]) for kind in KINDS},
         "frame_views_with_any": {kind: int(sum(r[kind] > 0 for r in rows)) for kind in KINDS},
