@@ -483,7 +483,8 @@ def check(clips=("walk",), shapes=None, frames_per_clip: int = 10, views=VIEWS, 
                     edges.setdefault(garment, {}).setdefault(name, []).append(value)
             for v, c in enumerate(counts):
                 fills.append(c["fill"])
-                row = {"clip": clip, "frame": index, "shape": None if shape is None else list(shape), "view": v, "silhouette": c["silhouette"]}
+                row = {"clip": clip, "frame": index, "shape": None if shape is None else list(shape), "view": v,
+                       "silhouette": c["silhouette"]}
                 for kind in KINDS:
                     share = c[kind] / max(c["silhouette"], 1)
                     shares[kind].append(share)
@@ -498,7 +499,8 @@ def check(clips=("walk",), shapes=None, frames_per_clip: int = 10, views=VIEWS, 
         errors = list(session.errors)
     codes = getattr(session, "codes", {})
     report = {
-        "frames": len(frames), "views": list(views), "clips": list(clips), "shapes": [None if s is None else list(s) for s in shapes],
+        "frames": len(frames), "views": list(views), "clips": list(clips),
+        "shapes": [None if s is None else list(s) for s in shapes],
         "image": SIZE, "frame_views": len(rows), "seconds": time.monotonic() - started,
         "share_of_silhouette": {kind: summary(shares[kind]) for kind in KINDS},
         "frame_views_with_any": {kind: int(sum(r[kind] > 0 for r in rows)) for kind in KINDS},

@@ -79,7 +79,9 @@ export function install({ THREE, renderer, scene, world, meshes, stats }) {
 
   function base64(bytes) {
     let text = '';
-    for (let i = 0; i < bytes.length; i += 0x8000) text += String.fromCharCode.apply(null, bytes.subarray(i, i + 0x8000));
+    for (let i = 0; i < bytes.length; i += 0x8000) {
+      text += String.fromCharCode.apply(null, bytes.subarray(i, i + 0x8000));
+    }
     return btoa(text);
   }
 
@@ -94,8 +96,10 @@ export function install({ THREE, renderer, scene, world, meshes, stats }) {
   function placeCamera(camera, view, box) {
     const centre = box.getCenter(new THREE.Vector3());
     const corners = [];
-    for (const x of [box.min.x, box.max.x]) for (const y of [box.min.y, box.max.y]) for (const z of [box.min.z, box.max.z]) {
-      corners.push(new THREE.Vector3(x, y, z));
+    for (const x of [box.min.x, box.max.x]) {
+      for (const y of [box.min.y, box.max.y]) {
+        for (const z of [box.min.z, box.max.z]) corners.push(new THREE.Vector3(x, y, z));
+      }
     }
     const azimuth = THREE.MathUtils.degToRad(view.azimuth);
     let distance = 4.0;
@@ -206,7 +210,9 @@ export function install({ THREE, renderer, scene, world, meshes, stats }) {
     setWholeBody(faces) { wholeFaces = faces; reference = drop(reference); },
     hide(faces) {
       hidden = new Set();
-      for (let f = 0; f < faces.length; f += 3) hidden.add([faces[f], faces[f + 1], faces[f + 2]].sort((a, b) => a - b).join(','));
+      for (let f = 0; f < faces.length; f += 3) {
+        hidden.add([faces[f], faces[f + 1], faces[f + 2]].sort((a, b) => a - b).join(','));
+      }
       shownBody = drop(shownBody);
     },
     stamps: () => Object.fromEntries(Object.entries(stats.meshes).map(([key, m]) => [key, m.stamp ?? null])),
