@@ -69,7 +69,7 @@ LAB_PASSTHROUGH = (
 BENCH_PASSTHROUGH = {"node": (".evaluate.bench_node", "main"), "crowd": (".evaluate.bench_crowd", "main"),
                      "sequence": (".evaluate.bench_sequence", "main"),
                      "pose-models": (".evaluate.bench_pose_models", "main"),
-                     "cold-start": (".evaluate.bench_cold_start", "main")}
+                     "cold-start": (".evaluate.bench_cold_start", "main"), "look": (".evaluate.look", "main")}
 
 
 def _passthrough(module: str, function: str):

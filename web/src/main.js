@@ -244,3 +244,7 @@ window.addEventListener('resize', () => {
 
 renderer.setAnimationLoop(render);
 connect();
+// ?look=1: the viewer's-eye check (web/src/look.js, `agentdress bench look`) draws this page's meshes off screen
+if (new URLSearchParams(window.location.search).has('look')) {
+  import('./look.js').then((look) => look.install({ THREE, renderer, scene, world, meshes, stats }));
+}
