@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="command")
 
     bench = commands.add_parser("bench", help="benchmarks, JSON on stdout: body, synth, node, crowd, pose-models, "
-                                "cold-start, sequence", description=f"body and synth take the options below; "
+                                "cold-start, sequence, look", description=f"body and synth take the options below; "
                                 f"{', '.join(BENCH_PASSTHROUGH)} their own (agentdress bench node --help)")
     bench.add_argument("target", choices=["body", "synth", *BENCH_PASSTHROUGH])
     bench.add_argument("--garments", nargs="+", default=["tshirt"], help="garment templates to pose with the body")
