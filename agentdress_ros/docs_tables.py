@@ -81,7 +81,7 @@ def _node_row():
     return ("node at 90 Hz, JointState -> PointCloud2 over DDS (T-shirt database, "
             f"{run['vertices']:,} vertices published)",
             f"latency p50 {latency['p50']:.1f} / p99 {latency['p99']:.1f} ms, {run['late_ticks']} late ticks (the node "
-            f"got {run['cpu_percent']:.0f} % of the shared core)",
+            f"used {run['cpu_percent']:.0f} % of its core)",
             "`agentdress bench node --database data/tshirt_default.h5 --vertices 0 --seconds 20`",
             "docs/bench/node_tshirt.json")
 
@@ -111,7 +111,7 @@ def _crowd_row():
 def _cold_start_row():
     median = _read("docs/bench/cold_start_tshirt.json")["result"]["median"]
     return ("cold start: fresh interpreter to the first frame (T-shirt database, node default engine)",
-            f"{median['cpu_s']:.2f} s of CPU ({median['process_s']:.1f} s wall on the shared core)",
+            f"{median['cpu_s']:.2f} s of CPU ({median['process_s']:.1f} s wall)",
             "`agentdress bench cold-start --database data/tshirt_default.h5`", "docs/bench/cold_start_tshirt.json")
 
 
