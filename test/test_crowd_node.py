@@ -2,7 +2,7 @@
 
 One node dresses `alice` and `bob` (T-shirt from the shipped database; bob has his own shape and origin) for most
 tests; a second one dresses six artificially expensive agents for the budget. Checked: two agents with different
-shapes and motions get different clouds on their own topics, each equal to the single agent's for that agent; a
+shapes and motions get different clouds on their own topics, each equal to the engine's output for that agent; a
 bad message to one agent leaves the other untouched; agents added and removed through the `agents` parameter; an
 agent out of the viewer's field of view is no longer published and is again on its return; the frame budget holds
 with agents made expensive (an injected per-frame cost), never degrading the near one: checked on the scheduler's
@@ -32,7 +32,6 @@ from .conftest import TSHIRT_DATABASE, qos, running_node, set_parameters  # noqa
 TSHIRT = str(TSHIRT_DATABASE)
 ENGINE = ["pose_model=examples", "decay=false"]  # no frame-to-frame history: each cloud is a function of its pose
 BOB_SHAPE = [0.2, 0.6, 0.4, 0.8, 0.3, 0.5]
-SUBDIVISION = 1  # display_subdivision, config/agentdress.yaml
 BEST_EFFORT = qos("best_effort", 10)
 
 
@@ -115,14 +114,11 @@ def crowd(tmp_path_factory, ros_domain):
 
 
 def _engine(body, beta):
-    """The single agent's T-shirt on beta as the node publishes it: refined for display (display_subdivision 1,
-    config/agentdress.yaml), as every agent of the crowd is."""
-    from agentdress_ros.display.models import dress_for_display
-    from agentdress_ros.engine import EngineConfig
-    from agentdress_ros.models.garment_models import make_garment_model
+    from agentdress_ros.engine import EngineConfig, load_engine
 
-    model = make_garment_model("tshirt", TSHIRT, None, body, beta, EngineConfig(pose_model="examples", decay=False))
-    return dress_for_display({"tshirt": model}, body, {}, SUBDIVISION, beta)["tshirt"]
+    engine = load_engine(TSHIRT, EngineConfig(pose_model="examples", decay=False), body)
+    engine.set_shape(beta)
+    return engine
 
 
 def test_two_agents_get_their_own_correct_clouds(crowd, body):
@@ -130,36 +126,13 @@ def test_two_agents_get_their_own_correct_clouds(crowd, body):
     walk, wave = make_motion("walk", fps=30.0), make_motion("wave", fps=30.0)
     alice, alice_cloud = client.answer("alice", walk.rotvecs[7], walk.root_translation[7])
     bob, bob_cloud = client.answer("bob", wave.rotvecs[20], wave.root_translation[20])
-    # copies: the refinement's output buffer is shared by the models of one topology
     expected_alice = _engine(body, [0.5, 0.6667, 0.5, 0.5, 0.5, 0.5]).synthesize(walk.rotvecs[7],
-                                                                                 walk.root_translation[7]).copy()
-    expected_bob = _engine(body, BOB_SHAPE).synthesize(wave.rotvecs[20], wave.root_translation[20]).copy()
+                                                                                 walk.root_translation[7])
+    expected_bob = _engine(body, BOB_SHAPE).synthesize(wave.rotvecs[20], wave.root_translation[20])
     assert np.abs(alice - expected_alice).max() < 1e-4
     assert np.abs(bob - expected_bob).max() < 1e-4
     assert np.abs(alice - bob).max() > 0.05
     assert alice_cloud.header.frame_id == "agent" and bob_cloud.header.frame_id == "bob_frame"
-
-
-def test_an_agents_mesh_is_refined_as_the_single_agents(crowd, body):
-    """The topology an agent publishes (transient local) is the single agent's: the refined faces of its clouds."""
-    from rclpy.qos import DurabilityPolicy
-    from shape_msgs.msg import Mesh
-
-    from agentdress_ros.ros.messages import mesh_to_arrays
-
-    client, _ = crowd
-    meshes = []
-    topology = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    sub = client.node.create_subscription(Mesh, "/agentdress_node/alice/tshirt/mesh", meshes.append, topology)
-    try:
-        assert spin_until(client.executor, lambda: meshes, 20.0), "no mesh"
-    finally:
-        client.node.destroy_subscription(sub)
-    vertices, faces = mesh_to_arrays(meshes[-1])
-    single = _engine(body, [0.5, 0.6667, 0.5, 0.5, 0.5, 0.5])
-    np.testing.assert_array_equal(faces, single.faces)
-    assert len(vertices) == single.n_vertices
 
 
 def test_the_agents_inputs_have_a_participant_of_their_own_below_the_nodes_receive_threads(crowd):
@@ -275,7 +248,7 @@ def test_a_body_shape_message_refits_its_agent_only(crowd):
     client.shapes["bob"].publish(Float32MultiArray(data=list(BOB_SHAPE)))
 
 
-def test_agents_are_added_and_removed_at_run_time(crowd, body):
+def test_agents_are_added_and_removed_at_run_time(crowd):
     client, child = crowd
     walk = make_motion("walk", fps=30.0)
     assert client.set_parameters(agents=["alice", "bob", "carol"])[0].successful
@@ -283,8 +256,7 @@ def test_agents_are_added_and_removed_at_run_time(crowd, body):
     while "carol" not in client.latest_status()["crowd"]["agents_detail"] and time.monotonic() < deadline:
         client.spin(0.2)
     carol, _ = client.answer("carol", walk.rotvecs[2], walk.root_translation[2])
-    refined = _engine(body, [0.5, 0.6667, 0.5, 0.5, 0.5, 0.5]).n_vertices  # the T-shirt's 1,200, refined
-    assert np.isfinite(carol).all() and carol.shape == (refined, 3)
+    assert np.isfinite(carol).all() and carol.shape == (1200, 3)
     alice, _ = client.answer("alice", walk.rotvecs[9], walk.root_translation[9])  # the others carry on
     assert client.set_parameters(agents=["alice", "bob"])[0].successful
     status = client.latest_status()

@@ -203,16 +203,9 @@ def test_agents_share_garment_data_and_hold_a_small_state(scene, body, walk):
     assert 0 < own < 5e6, own
 
 
-def _single_agent(body, beta, subdivision=0, garments=GARMENTS):
-    """The single agent's models of `garments` on beta, dressed for display as the node dresses them."""
-    from agentdress_ros.display.models import dress_for_display
-    from agentdress_ros.models.garment_models import make_garment_model
-
-    models = {g.name: make_garment_model(g.name, g.database, None, body, beta, g.engine.config()) for g in garments}
-    return dress_for_display(models, body, {}, subdivision, beta)
-
-
 def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
+    from agentdress_ros.engine import EngineConfig, load_engine
+
     shapes = {"a": BETA0, "b": (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)}
     for name, beta in shapes.items():
         _add(scene, name, beta)
@@ -223,75 +216,12 @@ def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
     scene.tick(published)
     assert set(published.frames) == {"a", "b"}
     for name, frame in ((("a", 3)), ("b", 17)):
+        engine = load_engine(DATA / "tshirt_default.h5", EngineConfig(pose_model="examples"), body)
+        engine.set_shape(shapes[name])
         offset = (2.0, 0.0, 0.0) if name == "b" else (0.0, 0.0, 0.0)
-        for garment, model in _single_agent(body, shapes[name]).items():
-            expected = model.synthesize(rot[frame], root[frame] + offset)
-            np.testing.assert_allclose(published.frames[name][garment], expected, atol=1e-5)
+        expected = engine.synthesize(rot[frame], root[frame] + offset)
+        assert np.allclose(published.frames[name]["tshirt"], expected, atol=1e-5)
     assert not np.allclose(published.frames["a"]["tshirt"], published.frames["b"]["tshirt"], atol=1e-2)
-
-
-def test_an_agent_is_refined_and_layered_as_the_single_agent_and_a_tier_may_skip_layering(body, walk):
-    """display_subdivision and garment layers in a crowd: the near tier's frames and faces are the single agent's
-    (display.models.dress_for_display: the T-shirt pushed out of the trousers, both refined); a tier whose line
-    says layers=false refines without layering; a shape refit makes the bindings of the new shape."""
-    tiers = parse_tiers(["near 3 synthesis", "far inf synthesis layers=false"])
-    scene = Scene(body, SceneConfig(lod=LodPolicy(tiers=tiers), budget_ms=0.0, fade_frames=0))
-    try:
-        beta = (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)
-        agent, other = _add(scene, "a", beta, subdivision=1), _add(scene, "b", beta, subdivision=1)
-        single = _single_agent(body, beta, subdivision=1)
-        assert list(agent.garments) == list(single) == ["trousers", "tshirt"]  # inner layers first
-        for name, model in single.items():
-            np.testing.assert_array_equal(agent.garments[name].faces, model.faces)
-            assert len(model.faces) == 4 * len(agent.garments[name].coarse_faces)
-        pushed = 0.0
-        for frame in (3, 9, 15):
-            rotvecs, root = walk.rotvecs[frame], walk.root_translation[frame]
-            agent.pose.set(rotvecs, root)
-            other.pose.set(rotvecs, root)
-            near = {n: v.copy() for n, v in agent.dress(0).items()}
-            for name, model in single.items():
-                np.testing.assert_allclose(near[name], model.synthesize(rotvecs, root), atol=1e-5)
-            far = other.dress(1)  # the same engine, the same history: only the layering differs
-            np.testing.assert_array_equal(far["trousers"], near["trousers"])  # the innermost: nothing to push
-            pushed = max(pushed, float(np.abs(far["tshirt"] - near["tshirt"]).max()))
-        assert pushed > 1e-3, pushed  # the near tier's T-shirt is pushed out of the trousers somewhere, far's not
-        refit = (0.8, 0.3, 0.5, 0.2, 0.7, 0.5)
-        scene.request_shape("a", refit)
-        deadline = time.monotonic() + 60.0
-        while agent.beta != refit or not scene.idle():
-            assert time.monotonic() < deadline, "the refit did not finish"
-            time.sleep(0.05)
-        single = _single_agent(body, refit, subdivision=1)
-        rotvecs, root = walk.rotvecs[21], walk.root_translation[21]
-        agent.pose.set(rotvecs, root)
-        for garment in agent.garments.values():
-            garment.reset()
-        near = agent.dress(0)
-        for name, model in single.items():
-            np.testing.assert_allclose(near[name], model.synthesize(rotvecs, root), atol=1e-5)
-    finally:
-        scene.stop()
-
-
-def test_a_batch_of_agents_pose_models_answers_as_each_one_alone(scene, walk):
-    """engine.pose_models.predict_batch over two agents' pose models (forks on shared examples): each answer is
-    that model's own evaluate from the same state; a batch whose lengths disagree is refused."""
-    from agentdress_ros.engine.pose_models import canonical_poses, predict_batch
-
-    agents = [_add(scene, "a"), _add(scene, "b", (0.2, 0.5, 0.5, 0.8, 0.3, 0.5))]
-    models = [agent.garments["tshirt"].base.pose_model for agent in agents]
-    thetas = list(canonical_poses(walk.rotvecs[[3, 9]]))
-    roots = [walk.root_translation[3], walk.root_translation[9]]
-    for model in models:
-        model.reset()
-    batch = [np.array(out) for out in predict_batch(models, thetas, roots)]
-    for model, theta, root, out in zip(models, thetas, roots, batch):
-        model.reset()
-        np.testing.assert_array_equal(out, model.evaluate(theta, root, None))
-    assert not np.array_equal(batch[0], batch[1])
-    with pytest.raises(ValueError, match="2 models for 1 poses"):
-        predict_batch(models, thetas[:1], roots[:1])
 
 
 def test_an_agent_runs_the_garment_model_its_spec_names(scene, body, walk):
@@ -374,7 +304,7 @@ def test_an_agent_out_of_view_is_not_dressed_and_comes_back_on_the_frame_it_retu
 
 
 def test_a_tier_change_cross_fades_instead_of_popping(scene, walk):
-    agent = _add(scene, "a", layers=(("trousers", 2),))  # one layer: the T-shirt's frames are its levels' own
+    agent = _add(scene, "a")
     published = Published()
     pose = walk.rotvecs[5]
     scene.set_viewer(Viewer.from_pose((-2.0, 0.0, 0.9), LOOK_X))

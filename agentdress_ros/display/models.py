@@ -29,8 +29,8 @@ from ..garment.binding import face_normals, vertex_normals
 from ..garment.coverage import MAX_GAP, cover_depth, faces_with_vertices, sloped, tuck_depth
 from ..models.garment_models import BodyModel
 
-__all__ = ["POSE_RANGE", "TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "DisplayStages", "always_covered",
-           "display_plan", "dress_for_display", "garment_rest", "layered", "pose_range", "shape_range"]
+__all__ = ["POSE_RANGE", "TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "always_covered", "dress_for_display",
+           "garment_rest", "pose_range", "shape_range"]
 
 #: Layer of each template, inside out: trousers under a shirt worn outside them. A higher layer is pushed out of
 #: the next lower one; equal layers are not layered. Tucked in: give the trousers a layer above the shirt's.
@@ -134,74 +134,31 @@ def _coverage(model, body):
     return _cached(("coverage",) + _topology_key(model), make)
 
 
-class DisplayStages:
-    """The display stages of one garment's frames, for one wearer (own buffers): pushed out of the inner garment's
-    frame (layering: `binding` of this garment to the inner one's faces `inner_faces`, `under` the reverse binding),
-    then refined (`subdivision`, shared per topology). The single agent's DisplayModel and each crowd agent's
-    garments run the same stages."""
-
-    def __init__(self, n_vertices: int, faces: np.ndarray, subdivision: LoopSubdivision | None = None,
-                 inner_faces: np.ndarray | None = None, binding=None, under=None):
-        self.subdivision, self.inner_faces, self.binding, self.under = subdivision, inner_faces, binding, under
-        self.coarse_faces = faces
-        self.faces = subdivision.faces if subdivision is not None else faces
-        self.n_vertices = subdivision.n_vertices if subdivision is not None else n_vertices
-        self.layer_ms = self.refine_ms = 0.0  # cost of the last frame's layering and refinement
-        self._pushed = np.empty((n_vertices, 3), dtype=np.float32)
-        self._normals = None
-        if under is not None:  # the reverse binding's buffers: this garment's normals and lift
-            self._own_normals = np.empty((n_vertices, 3), dtype=np.float32)
-            self._lift = np.empty(n_vertices, dtype=np.float32)
-
-    def apply(self, coarse: np.ndarray, inner: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(display frame (V', 3), the frame after layering (V, 3): what an outer layer is pushed out of) of one
-        frame `coarse` (V, 3), left untouched; `inner`: the inner garment's frame after its own layering (None:
-        not layered). Both results may be internal buffers, valid until the next call."""
-        start = time.perf_counter()
-        if inner is not None and self.binding is not None and len(self.binding):
-            np.copyto(self._pushed, coarse)
-            coarse = self._pushed
-            if self._normals is None or len(self._normals) != len(inner):
-                self._normals = np.empty((len(inner), 3), dtype=np.float32)
-            push_out_of_inner(coarse, inner, self.inner_faces, self.binding, normals=self._normals)
-            if self.under is not None:
-                lift_over_inner(coarse, self.coarse_faces, inner, self.under, normals=self._own_normals,
-                                lift=self._lift)
-        middle = time.perf_counter()
-        out = self.subdivision.apply(coarse) if self.subdivision is not None else coarse
-        self.layer_ms, self.refine_ms = 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle)
-        return out, coarse
-
-
 class DisplayModel:
     """A garment model under the same protocol, its output pushed out of an inner garment and refined for display.
 
     `coarse` is the last output before refinement (what an outer layer is pushed out of)."""
 
     def __init__(self, base, subdivision: LoopSubdivision | None = None, inner=None, binding=None, under=None):
-        self.base, self.subdivision, self.inner = base, subdivision, inner
+        self.base, self.subdivision, self.inner, self.binding, self.under = base, subdivision, inner, binding, under
         self.name, self.kind = base.name, base.kind
-        self.stages = DisplayStages(base.n_vertices, base.faces, subdivision,
-                                    inner.base.faces if inner is not None else None, binding, under)
-        self.faces = self.stages.faces
+        self.faces = subdivision.faces if subdivision is not None else base.faces
         self.coarse = None
+        self.layer_ms = self.refine_ms = 0.0  # cost of the last frame's layering and refinement
+        self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
+        self._normals = None
+        if under is not None:  # the reverse binding's buffers: this garment's normals and lift
+            self._own_normals = np.empty((base.n_vertices, 3), dtype=np.float32)
+            self._lift = np.empty(base.n_vertices, dtype=np.float32)
 
     def __getattr__(self, name):  # engine, path, garment, shape_limits, ... of the wrapped model
-        if name in ("base", "stages"):
+        if name == "base":
             raise AttributeError(name)
         return getattr(self.base, name)
 
     @property
     def n_vertices(self) -> int:
-        return self.stages.n_vertices
-
-    @property
-    def layer_ms(self) -> float:
-        return self.stages.layer_ms
-
-    @property
-    def refine_ms(self) -> float:
-        return self.stages.refine_ms
+        return self.subdivision.n_vertices if self.subdivision is not None else self.base.n_vertices
 
     def set_shape(self, beta) -> bool:
         return self.base.set_shape(beta)
@@ -214,54 +171,46 @@ class DisplayModel:
 
     def synthesize(self, rotvecs, root_translation) -> np.ndarray:
         coarse = self.base.synthesize(rotvecs, root_translation)
-        out, self.coarse = self.stages.apply(coarse, self.inner.coarse if self.inner is not None else None)
+        start = time.perf_counter()
+        inner = self.inner.coarse if self.inner is not None else None
+        if inner is not None and self.binding is not None and len(self.binding):
+            np.copyto(self._pushed, coarse)
+            coarse = self._pushed
+            if self._normals is None or len(self._normals) != len(inner):
+                self._normals = np.empty((len(inner), 3), dtype=np.float32)
+            push_out_of_inner(coarse, inner, self.inner.base.faces, self.binding, normals=self._normals)
+            if self.under is not None:
+                lift_over_inner(coarse, self.base.faces, inner, self.under, normals=self._own_normals, lift=self._lift)
+        middle = time.perf_counter()
+        self.coarse = coarse
+        out = self.subdivision.apply(coarse) if self.subdivision is not None else coarse
+        self.layer_ms, self.refine_ms = 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle)
         return out
-
-
-def display_plan(models: dict, body, layers: dict | None = None, subdivision: int = 0, beta=None,
-                 fitted=lambda model: model) -> list:
-    """How garments `models` {name: model} are dressed for display, inner layers first: [(name, LoopSubdivision or
-    None, inner garment's name or None, binding, reverse binding)] (bindings made as the two hang at rest on `beta`,
-    cached per topology and shape, between `fitted(model)`: the models fitted to beta); the body left out. layers:
-    {garment: layer} overriding TEMPLATE_LAYERS; subdivision: 0, 1 or 2 rounds."""
-    shape_key = tuple(np.asarray(beta, dtype=np.float64).ravel().tolist()) if beta is not None else None
-    layer_of = dict(TEMPLATE_LAYERS, **(layers or {}))
-    garments = {n: _base(m) for n, m in models.items() if n != "body"}
-    order = sorted(garments, key=lambda n: layer_of.get(n, 0))  # stable: equal layers keep their order
-    plan = []
-    for position, name in enumerate(order):
-        base = garments[name]
-        refine = None
-        if subdivision:
-            refine = _cached(("loop", subdivision) + _topology_key(base),
-                             lambda: LoopSubdivision(base.faces, base.n_vertices, subdivision))
-        inner = next((n for n in reversed(order[:position]) if layer_of.get(n, 0) < layer_of.get(name, 0)), None)
-        binding = under = None
-        if inner is not None:
-            binding, under = _cached(("layer", shape_key) + _topology_key(base) + _topology_key(garments[inner]),
-                                     lambda: _layer_bindings(fitted(base), fitted(garments[inner]), body),
-                                     _SHAPE_CACHE)
-        plan.append((name, refine, inner, binding, under))
-    return plan
-
-
-def layered(models: dict, layers: dict | None = None) -> bool:
-    """Whether the garments of `models` lie on more than one layer (each then keeps its layered frame)."""
-    layer_of = dict(TEMPLATE_LAYERS, **(layers or {}))
-    return len({layer_of.get(n, 0) for n in models if n != "body"}) > 1
 
 
 def dress_for_display(models: dict, body, layers: dict | None = None, subdivision: int = 0, beta=None) -> dict:
     """The node's models {name: model} ready for display (see the module docstring), ordered inner layers first and
     the body last. layers: {garment: layer} overriding TEMPLATE_LAYERS; subdivision: 0, 1 or 2 rounds; beta: the
     shape the models are fitted to (the layer bindings are made per shape)."""
+    shape_key = tuple(np.asarray(beta, dtype=np.float64).ravel().tolist()) if beta is not None else None
+    layer_of = dict(TEMPLATE_LAYERS, **(layers or {}))
     garments = {n: _base(m) for n, m in models.items() if n != "body"}
-    wrap = layered(garments, layers)  # every garment then keeps its `coarse` output
+    order = sorted(garments, key=lambda n: layer_of.get(n, 0))  # stable: equal layers keep their order
+    layered = len({layer_of.get(n, 0) for n in order}) > 1  # every garment then keeps its `coarse` output
     out = {}
-    for name, refine, inner, binding, under in display_plan(garments, body, layers, subdivision, beta):
+    for position, name in enumerate(order):
         base = garments[name]
-        out[name] = DisplayModel(base, refine, out.get(inner), binding, under) if refine is not None or wrap \
-            else base
+        refine = None
+        if subdivision:
+            refine = _cached(("loop", subdivision) + _topology_key(base),
+                             lambda: LoopSubdivision(base.faces, base.n_vertices, subdivision))
+        inner = next((out[n] for n in reversed(order[:position]) if layer_of.get(n, 0) < layer_of.get(name, 0)),
+                     None)
+        binding = under = None
+        if inner is not None:
+            binding, under = _cached(("layer", shape_key) + _topology_key(base) + _topology_key(inner),
+                                     lambda: _layer_bindings(base, inner.base, body), _SHAPE_CACHE)
+        out[name] = DisplayModel(base, refine, inner, binding, under) if refine is not None or layered else base
     if "body" in models:
         out["body"] = _covered_body(models["body"], garments, body)
     return out

@@ -12,10 +12,9 @@ Active when the parameter `agents` lists names. Per agent `<a>` (topics relative
 and for the scene:
   in   <viewer_topic>            geometry_msgs/PoseStamped   the headset, in the agents' frame (or moved there by
                                                              the fixed `viewer_offset` x, y, z, yaw)
-Each agent takes the node's garments, garment_databases, garment_vertices, garment_models, engine, shape, frame_id,
-publish_body, display_subdivision and garment_layers (dressed for display as the single agent; a tier line may
-leave out the layering), overridden per agent by `agent.<a>.<parameter>` (startup, from the YAML), plus
-`agent.<a>.origin` (its frame's origin in the scene, for distances) and `agent.<a>.extra_cost_ms` (an artificial cost per frame, for
+Each agent takes the node's garments, garment_databases, garment_vertices, garment_models, engine, shape, frame_id
+and publish_body, overridden per agent by `agent.<a>.<parameter>` (startup, from the YAML), plus `agent.<a>.origin`
+(its frame's origin in the scene, for distances) and `agent.<a>.extra_cost_ms` (an artificial cost per frame, for
 tests and benchmarks of the frame budget). Agents added to `agents` at run time are built on the scene's worker
 thread and go live on a later tick; removed ones are dropped at once (their publishers destroyed).
 
@@ -80,12 +79,6 @@ def dds_thread_ids() -> list[int]:
     return ids
 
 
-def output_topic(agent: str, topic: str) -> str:
-    """The node's output `topic` of `agent`: ~/<agent>/<topic>, or ~/<topic> for the agent without a name (the
-    single agent's topics)."""
-    return f"~/{agent}/{topic}" if agent else f"~/{topic}"
-
-
 def _never_called(msg):
     """Callback of the polled subscriptions (their node is never spun)."""
 
@@ -99,7 +92,7 @@ def _take_all(sub, handle) -> list:
             taken.append(message[0])
     return taken
 
-__all__ = ["AGENT_KEYS", "AgentTopics", "Crowd", "agent_overrides", "output_topic", "scene_config"]
+__all__ = ["AGENT_KEYS", "AgentTopics", "Crowd", "agent_overrides", "scene_config"]
 
 def _origin(name, value) -> tuple:
     if value is None or isinstance(value, (str, bool)) or len(value) != 3 or not all(
@@ -112,8 +105,7 @@ def _origin(name, value) -> tuple:
 #: (their parameter's check), and crowd-only ones.
 AGENT_CHECKS = {**{key: PARAMETERS[key].check for key in ("garments", "garment_databases", "garment_vertices",
                                                           "garment_models", "engine", "shape", "frame_id",
-                                                          "publish_body", "display_subdivision",
-                                                          "garment_layers")},
+                                                          "publish_body")},
                 "origin": _origin, "extra_cost_ms": number(0.0, 1000.0)}
 AGENT_KEYS = tuple(AGENT_CHECKS)
 
@@ -222,8 +214,7 @@ class Crowd:
         garments = garment_specs(config)
         beta = tuple(float(b) for b in check_shape_values(config["shape"]).beta)
         return AgentSpec(name, garments, beta, config["frame_id"], config.get("origin", (0.0, 0.0, 0.0)),
-                         config.get("extra_cost_ms", 0.0), config["publish_body"], self.config["skinned_fallback"],
-                         config["display_subdivision"], tuple(config["garment_layers"].items()))
+                         config.get("extra_cost_ms", 0.0), config["publish_body"], self.config["skinned_fallback"])
 
     def set_agents(self, names, initial: bool = False):
         """Make the agents `names`: build new ones (at startup now, later on the worker), drop the others."""
@@ -248,10 +239,8 @@ class Crowd:
             self.scene.request_agent(self.spec(name))
 
     def _input_topic(self, name: str, parameter: str) -> str:
-        """An agent's input topic: the single agent's (joint_state_topic, shape_topic) under its name (none: the
-        single agent's own)."""
-        topic = self.config[parameter]
-        return f"{name}/{topic.lstrip('/')}" if name else topic
+        """An agent's input topic: the single agent's (joint_state_topic, shape_topic) under its name."""
+        return f"{name}/{self.config[parameter].lstrip('/')}"
 
     def _create_inputs(self, name: str):
         """The agent's input subscriptions, on the node the executor never waits on (see `poll`)."""
@@ -284,18 +273,18 @@ class Crowd:
             self.bones.pop((agent.name, g), None)
         for g in agent.garments:
             if g not in entity.points:
-                entity.points[g] = node.create_publisher(PointCloud2, output_topic(agent.name, f"{g}/points"),
-                                                         node.qos("points"), event_callbacks=QUIET_PUBLISHER)
-                entity.mesh[g] = node.create_publisher(Mesh, output_topic(agent.name, f"{g}/mesh"),
-                                                       node.topology_qos, event_callbacks=QUIET_PUBLISHER)
+                entity.points[g] = node.create_publisher(PointCloud2, f"~/{agent.name}/{g}/points",
+                                                            node.qos("points"), event_callbacks=QUIET_PUBLISHER)
+                entity.mesh[g] = node.create_publisher(Mesh, f"~/{agent.name}/{g}/mesh", node.topology_qos,
+                                                          event_callbacks=QUIET_PUBLISHER)
             mesh = self.topology.get(agent.name, {}).get(g)
             if mesh is not None:
                 entity.mesh[g].publish(mesh)
             if g not in entity.skin and skin_binding(agent.garments[g].base) is not None:
-                entity.skin[g] = node.create_publisher(Float32MultiArray, output_topic(agent.name, f"{g}/skin"),
-                                                       node.topology_qos, event_callbacks=QUIET_PUBLISHER)
-                entity.bones[g] = node.create_publisher(PoseArray, output_topic(agent.name, f"{g}/bones"),
-                                                        node.qos("points"), event_callbacks=QUIET_PUBLISHER)
+                entity.skin[g] = node.create_publisher(Float32MultiArray, f"~/{agent.name}/{g}/skin",
+                                                          node.topology_qos, event_callbacks=QUIET_PUBLISHER)
+                entity.bones[g] = node.create_publisher(PoseArray, f"~/{agent.name}/{g}/bones", node.qos("points"),
+                                                           event_callbacks=QUIET_PUBLISHER)
         entity.installed = agent
         entity.skin_generation = None  # sent with the agent's next frame
 
@@ -560,8 +549,8 @@ class Crowd:
                 continue
             if entity.marker is None:
                 with node.publish_lock:
-                    entity.marker = node.create_publisher(Marker, output_topic(name, "marker"), 10,
-                                                          event_callbacks=QUIET_PUBLISHER)
+                    entity.marker = node.create_publisher(Marker, f"~/{name}/marker", 10,
+                                                             event_callbacks=QUIET_PUBLISHER)
             frames = {g: (cloud.vertices(), agent.garments[g].faces) for g, cloud in clouds.items()}
             jobs.append((lambda e=entity: e.marker, frames,
                          stamp_from_ns(max(c.stamp_ns for c in clouds.values())), agent.spec.frame_id))

@@ -117,11 +117,8 @@ class AgentGarment:
     """
 
     def __init__(self, shared, tiers, fade_frames: int = 6):
-        self.name, self.kind = shared.name, shared.kind
-        self.faces = self.coarse_faces = shared.faces  # faces: of the display frame (refined: set_display)
-        self.n_vertices = shared.n_vertices  # of the coarse frame that `dress` returns
-        self.display = None  # display.models.DisplayStages run on each frame (Scene's agents), or None
-        self.inner: str | None = None  # the garment this one is pushed out of
+        self.name, self.faces, self.kind = shared.name, shared.faces, shared.kind
+        self.n_vertices = shared.n_vertices
         self.fade_frames = int(fade_frames)
         self.clamped = False
         engine = getattr(shared, "engine", None)
@@ -150,12 +147,6 @@ class AgentGarment:
         self.level: int | None = None
         self._fade_from: int | None = None
         self._fade_left = 0
-
-    def set_display(self, stages, inner: str | None):
-        """The display stages (display.models.DisplayStages or None) of this garment's frames, layered out of
-        garment `inner`; swapped by reference (a refit's new bindings)."""
-        self.display, self.inner = stages, inner
-        self.faces = stages.faces if stages is not None else self.coarse_faces
 
     @property
     def fading(self) -> bool:
@@ -231,8 +222,6 @@ class AgentGarment:
         leaves no decay history behind. Call before the agent goes live (it uses the frame buffers)."""
         zeros, root = np.zeros((NUM_BONES, 3)), np.zeros(3)
         frame = self.base.skin(zeros, root) if self._engines else self.base.synthesize(zeros, root)
-        if self.display is not None and self.display.subdivision is not None:  # the display's topology
-            frame = self.display.subdivision.apply(np.asarray(frame, dtype=np.float32))
         frame = np.array(frame, dtype=np.float32)
         self.reset()
         return frame

@@ -13,10 +13,8 @@ A tier is one line of text, so a list of them is a plain ROS string-array parame
 `<name> <max distance in m | inf> <synthesis | skinned> [key=value ...]`: keys are the engine's per-frame knobs
 (engine.config.PER_FRAME_KNOBS, read by EngineKnobs.parse like the node's `engine` parameter: neighbors,
 penetration, projection (0 only: off), decay, damping, power, pose_model (where neither the agent's nor the tier's
-folds anchor residuals; kept otherwise)) for synthesis tiers, `every=n` and `layers=false` (its garments not
-pushed out of each other, display.models) for any tier. The other display stages follow the agent (Loop refinement
-changes the topology, which one mesh per garment fixes for every tier; the body's masking costs nothing per frame).
-Tiers are ordered by distance; the last one must reach `inf`.
+folds anchor residuals; kept otherwise)) for synthesis tiers, and `every=n` for any tier. Tiers are ordered by
+distance; the last one must reach `inf`.
 """
 from __future__ import annotations
 
@@ -39,12 +37,10 @@ class Tier:
     kind: str = "synthesis"  # "synthesis" (the engine) | "skinned" (the fitted garment, skinned)
     engine: EngineKnobs = EngineKnobs()  # engine fork overrides of a synthesis tier
     every: int = 1  # dress on every n-th tick only (a lower pose rate for far agents)
-    layers: bool = True  # garments pushed out of each other for display (display.models), as the single agent's
 
     def text(self) -> str:
         extra = self.engine.words()
         extra += [f"every={self.every}"] if self.every != 1 else []
-        extra += [] if self.layers else ["layers=false"]
         return " ".join([self.name, "inf" if math.isinf(self.max_distance) else f"{self.max_distance:g}",
                          self.kind] + extra)
 
@@ -69,7 +65,7 @@ def parse_tier(text: str) -> Tier:
             raise ValueError(f"max distance must be > 0, got {distance}")
         if kind not in TIER_KINDS:
             raise ValueError(f"kind must be one of {', '.join(TIER_KINDS)}, got {kind!r}")
-        knobs, every, layers = [], 1, True
+        knobs, every = [], 1
         for item in extra:
             key, sep, value = item.partition("=")
             if not sep or not value:
@@ -81,17 +77,13 @@ def parse_tier(text: str) -> Tier:
                     raise ValueError(f"every: {value!r} is not an integer") from None
                 if every < 1:
                     raise ValueError(f"every must be >= 1, got {every}")
-            elif key == "layers":
-                if value not in ("true", "false"):
-                    raise ValueError(f"layers: {value!r} is not true or false")
-                layers = value == "true"
             elif key in PER_FRAME_KNOBS:
                 if kind != "synthesis":
                     raise ValueError(f"{key} applies to synthesis tiers only")
                 knobs.append(item)
             else:
-                raise ValueError(f"unknown key {key!r}; one of every, layers, {', '.join(PER_FRAME_KNOBS)}")
-        return Tier(name, max_distance, kind, EngineKnobs.parse(knobs, per_frame=True), every, layers)
+                raise ValueError(f"unknown key {key!r}; one of every, {', '.join(PER_FRAME_KNOBS)}")
+        return Tier(name, max_distance, kind, EngineKnobs.parse(knobs, per_frame=True), every)
     except ValueError as error:
         raise ValueError(f"tier {text!r}: {error}") from None
 

@@ -59,8 +59,6 @@ class AgentSpec:
     extra_cost_ms: float = 0.0
     publish_body: bool = False
     skinned_fallback: bool = False
-    subdivision: int = 0  # rounds of Loop refinement of each garment for display (display.models), every tier
-    layers: tuple = ()  # ((garment, layer), ...) overriding display.models.TEMPLATE_LAYERS (tiers may skip layering)
 
 
 @dataclass(frozen=True)
@@ -95,7 +93,6 @@ class Agent:
         self.shape_generation = 0
         self.beta = tuple(float(b) for b in spec.beta)
         self.specs = {}  # garment -> the GarmentSpec it was made from (a skinned fallback's, not the agent's)
-        self.layering: tuple = ()  # per level (tier): whether its garments are layered for display
 
     def centre(self) -> np.ndarray:
         root = self.pose.values[3 * NUM_BONES:]
@@ -105,21 +102,8 @@ class Agent:
         return any(g.fading for g in self.garments.values())
 
     def dress(self, level: int) -> dict:
-        """{garment: (V, 3) float32 frame dressed for display (an internal buffer, valid until the next agent is
-        dressed: a refined frame lies in the garment's shared LoopSubdivision) or
-        None (posed as bones only)}, inner layers first: each garment's own level, then its display stages (the
-        single agent's: layering where the level's tier asks for it, refinement)."""
         rotvecs, root = self.pose.rotvecs, self.pose.root_translation
-        layering = not self.layering or self.layering[level]
-        out, layered = {}, {}
-        for name, garment in self.garments.items():
-            frame = garment.dress(level, rotvecs, root)
-            if frame is not None and garment.display is not None:
-                inner = layered.get(garment.inner) if layering else None
-                frame, layered[name] = garment.display.apply(frame, inner)
-            elif frame is not None:  # an inner layer without stages of its own: the outer ones are pushed out of it
-                layered[name] = frame
-            out[name] = frame
+        out = {name: garment.dress(level, rotvecs, root) for name, garment in self.garments.items()}
         if self.spec.extra_cost_ms > 0:  # an artificially expensive agent: spin for the injected cost
             end = time.perf_counter() + self.spec.extra_cost_ms * 1e-3
             while time.perf_counter() < end:
@@ -131,13 +115,6 @@ class Agent:
         (the library's models): the agent's own state."""
         exclude = {id(a) for a in _arrays(shared)}
         return sum(a.nbytes for a in _arrays(self.garments.values()) if id(a) not in exclude)
-
-
-def _fitted_twin(model, beta):
-    """A copy of a shared garment model fitted to beta (the shared one stays as it is)."""
-    twin = model.clone()
-    twin.set_shape(np.asarray(beta, dtype=np.float64))
-    return twin
 
 
 def _arrays(roots, depth: int = 4) -> list:
@@ -253,34 +230,12 @@ class Scene:
                 shared, used[g.name] = self._shared(g, spec.skinned_fallback)
             garment = garments[g.name] = AgentGarment(shared, tiers, 0 if g.name == "body" else self.config.fade_frames)
             clamped |= self.library.fitted(used[g.name], spec.beta, garment)
-        agent = Agent(spec, self._for_display(spec, garments, used, spec.beta), self.pose_factory(), 0, clamped)
+        agent = Agent(spec, garments, self.pose_factory(), 0, clamped)
         agent.specs = used
         agent.beta = tuple(float(b) for b in spec.beta)
-        agent.layering = tuple(t.layers for t in tiers)
         with self._cond:
             agent.slot, self._slots = self._slots, self._slots + 1
         return agent
-
-    def _for_display(self, spec: AgentSpec, garments: dict, used: dict, beta) -> dict:
-        """`garments` {name: AgentGarment} with the single agent's display stages (display.models.display_plan: the
-        layer bindings made on `beta`), ordered inner layers first and the body last."""
-        from ..display.models import DisplayStages, display_plan
-
-        clothes = {n: self.library.get(used[n]) for n in garments if n != "body"}
-        out = {}
-        # the bindings are made between the garments as they hang on this shape (twins fitted to it)
-        for name, refine, inner, binding, under in display_plan(clothes, self.body, dict(spec.layers),
-                                                                spec.subdivision, beta,
-                                                                lambda model: _fitted_twin(model, beta)):
-            garment = out[name] = garments[name]
-            if refine is not None or inner is not None:
-                garment.set_display(DisplayStages(garment.n_vertices, garment.coarse_faces, refine,
-                                                  garments[inner].coarse_faces if inner else None, binding, under),
-                                    inner)
-            else:
-                garment.set_display(None, None)
-        out.update((n, g) for n, g in garments.items() if n not in out)
-        return out
 
     def _shared(self, spec: GarmentSpec, fallback: bool):
         """(the library's model of `spec`, the spec it was made from): the skinned template's when the database
@@ -351,7 +306,6 @@ class Scene:
                     if agent is not None and agent.beta != arg:  # a repeated shape costs nothing
                         agent.clamped = any([self.library.fitted(agent.specs[n], arg, g)
                                              for n, g in agent.garments.items()])
-                        self._for_display(agent.spec, agent.garments, agent.specs, arg)  # bindings of the shape
                         agent.beta = arg
                         agent.shape_generation += 1
                         agent.dirty = True
