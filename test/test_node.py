@@ -256,13 +256,18 @@ def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body, ros_do
             # the inside diagnostic: the published garment against the posed body, by the evaluation's test
             from agentdress_ros.ros.inside_check import InsideChecker
 
-            checks = state["status"][-1]["inside"]["checks"]
-            assert spin_until(executor, lambda: state["status"][-1]["inside"]["checks"] >= checks + 2, 10.0)
-            inside = state["status"][-1]["inside"]
             checker = InsideChecker(body, None)
             expected = checker.check({"tshirt": (vertices["tshirt"], db.faces)}, rotvecs,
                                     translation, state["status"][-1]["shape"])
             checker.stop()
+            # the node checks its newest snapshot at 2 Hz; on a loaded machine a check may still hold the snapshot
+            # taken before the answered pose was dressed, so the comparison waits up to three further rounds
+            for _ in range(3):
+                checks = state["status"][-1]["inside"]["checks"]
+                assert spin_until(executor, lambda: state["status"][-1]["inside"]["checks"] >= checks + 2, 10.0)
+                inside = state["status"][-1]["inside"]
+                if inside["garments"] == expected["garments"]:
+                    break
             assert inside["garments"] == expected["garments"] and 0.0 <= inside["age_s"] < 2.0, inside
             shares = inside["garments"]["tshirt"]
             assert shares["vertices_inside_pct"] == pytest.approx(shares["in_self_overlap_pct"]

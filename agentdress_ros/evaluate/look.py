@@ -304,8 +304,8 @@ class LookSession:
             self.page.on("pageerror", lambda error: self.errors.append(str(error)))
             self.page.set_default_timeout(300_000)  # a loaded machine draws and loads slowly in software
             self.page.goto(self.url + "?look=1")
-            self.page.wait_for_function("window.agentdressLook !== undefined", timeout=120_000)
-            self.page.evaluate("document.getElementById('panel').style.display = 'none'")
+            self.page.wait_for_function("() => window.agentdressLook !== undefined", timeout=120_000)
+            self.page.evaluate("() => { for (const p of document.querySelectorAll('#panel, .lil-gui')) p.style.display = 'none'; }")
         except BaseException:
             self.__exit__(None, None, None)
             raise
@@ -352,7 +352,7 @@ class LookSession:
         if shape is not None and (self.shape is None or not np.allclose(shape, self.shape)):
             self.shapes.publish(self.Float32MultiArray(data=[float(b) for b in shape]))
             self.shape = np.asarray(shape, dtype=np.float64)
-            self.page.wait_for_function(f"""Object.values(agentdress.status()).some((s) => s.shape &&
+            self.page.wait_for_function(f"""() => Object.values(agentdress.status()).some((s) => s.shape &&
                 s.shape.every((b, i) => Math.abs(b - {json.dumps(self.shape.tolist())}[i]) < 1e-4))""",
                                         timeout=timeout * 1000)  # the node has rebuilt for it
         deadline = time.monotonic() + timeout
@@ -369,7 +369,8 @@ class LookSession:
                 continue
             try:
                 self.page.wait_for_function(
-                    f"Object.values(agentdressLook.stamps()).every((s) => s !== null && Math.abs(s - {stamp!r}) < 1e-6)"
+                    f"() => Object.values(agentdressLook.stamps()).every((s) => s !== null && "
+                    f"Math.abs(s - {stamp!r}) < 1e-6)"
                     f" && Object.keys(agentdressLook.stamps()).length >= {len(state)}", timeout=60_000)
                 return
             except Exception:
