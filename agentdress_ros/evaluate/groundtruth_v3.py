@@ -129,7 +129,8 @@ def _final(drapes: dict, ramp: int, case: int):
 
 def summary(pack: dict, cases: list) -> dict:
     """Per case and ramp: frames, converged, extended; the cases kept (every drape present and converged), those
-    with a drape still missing, and those excluded because a drape converged neither at first nor extended."""
+    with a drape still missing (or not converged and not yet extended), and those excluded because a drape
+    converged neither at first nor extended."""
     rows, kept, missing = [], [], []
     for case in cases:
         row = {"case": case.index, "pose": case.pose_label, "shape": case.shape_label, "drapes": {}}
@@ -145,6 +146,8 @@ def summary(pack: dict, cases: list) -> dict:
             row["drapes"][ramp] = {"frames": stats["frames"], "converged": bool(stats["converged"]),
                                    "extended": extended, "seconds": round(stats["seconds"], 1)}
             complete &= bool(stats["converged"])
+            if not stats["converged"] and not extended and case.index not in missing:
+                missing.append(case.index)  # its extended drape is still to come
         rows.append(row)
         if complete:
             kept.append(case.index)

@@ -180,7 +180,7 @@ def markdown(report: dict) -> str:
     excluded, missing = report["excluded"], report.get("missing", [])
     lines = [f"Ground truth v3: {len(report['kept'])} of {report['cases']} cases kept (every drape converged; "
              f"excluded as not converged even when extended: {excluded if excluded else 'none'}"
-             f"{f'; not draped yet: {len(missing)} cases' if missing else ''}), ramps {report['ramps']}, clips "
+             f"{f'; not complete yet: {len(missing)} cases' if missing else ''}), ramps {report['ramps']}, clips "
              f"{', '.join(report['clips'])}. Means over cases with 95 % bootstrap intervals.", "",
              "| row | leave-one-out (cm) | ratio to ceiling | to mean drape (cm) | to nearest drape (cm) | "
              "surface (cm) | face centres inside |",
