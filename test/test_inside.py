@@ -10,6 +10,14 @@ def _sphere(centre, radius=1.0):
     return mesh.vertices + np.asarray(centre, dtype=float), mesh.faces
 
 
+def arms_down(body) -> np.ndarray:
+    """(B, 3) rotation vectors: Anny's arms pressed down into the torso (the skinned body overlaps itself there)."""
+    pose = np.zeros((body.n_bones, 3))
+    for side, sign in (("Left", 1.0), ("Right", -1.0)):
+        pose[body.bone_index(f"{side}Arm")] = (0.0, sign * 0.9, 0.0)
+    return pose
+
+
 def test_winding_number_is_one_inside_and_zero_outside_a_sphere():
     vertices, faces = _sphere((0.0, 0.0, 0.0))
     points = np.array([[0.0, 0.0, 0.0], [0.5, 0.2, -0.3], [0.0, 0.0, 0.95], [1.05, 0.0, 0.0], [3.0, 2.0, 1.0]])
@@ -63,9 +71,7 @@ def test_anny_at_rest_does_not_overlap_itself_where_garments_go_but_arms_down_it
     garment_bones = [i for i, name in enumerate(body.bone_names) if "Toe" not in name and name != "Head"]
     on_garment_bones = np.isin(body.skin_indices[ids, 0], garment_bones)
     assert (self_overlapping_vertices(rest, faces) & on_garment_bones).sum() == 0
-    pose = np.zeros((body.n_bones, 3))
-    for side, sign in (("Left", 1.0), ("Right", -1.0)):  # arms pressed down against the torso
-        pose[body.bone_index(f"{side}Arm")] = (0.0, sign * 0.9, 0.0)
+    pose = arms_down(body)
     posed = body.posed_vertices(shape, body.pose(shape, pose)[0])[ids]
     assert (self_overlapping_vertices(posed, faces) & on_garment_bones).sum() > 20
 
@@ -78,9 +84,7 @@ def test_clustered_winding_numbers_classify_like_the_exact_sum_on_a_self_overlap
 
     ids, faces = visible_body(body)
     shape = body.shape()
-    pose = np.zeros((body.n_bones, 3))
-    for side, sign in (("Left", 1.0), ("Right", -1.0)):
-        pose[body.bone_index(f"{side}Arm")] = (0.0, sign * 0.9, 0.0)
+    pose = arms_down(body)
     posed = body.posed_vertices(shape, body.pose(shape, pose)[0])[ids]
     rng = np.random.default_rng(0)
     surface = posed[rng.choice(len(posed), 600)] + rng.normal(0.0, 0.02, (600, 3))
@@ -133,9 +137,7 @@ def test_the_split_on_anny_arms_down(body):
 
     ids, faces = visible_body(body)
     shape = body.shape()
-    pose = np.zeros((body.n_bones, 3))
-    for side, sign in (("Left", 1.0), ("Right", -1.0)):
-        pose[body.bone_index(f"{side}Arm")] = (0.0, sign * 0.9, 0.0)
+    pose = arms_down(body)
     posed = body.posed_vertices(shape, body.pose(shape, pose)[0])[ids]
     normals = vertex_normals(posed, faces)
     sunk = np.flatnonzero(self_overlapping_vertices(posed, faces))

@@ -49,5 +49,11 @@ def bench_body(garment_names=("tshirt",), garment_vertices=None, repeats=200, se
     }
 
 
-def print_json(result: dict) -> None:
-    print(json.dumps(result, indent=2))
+def print_json(result: dict, out=None) -> None:
+    """Print a JSON report; with `out`, write the same text to that file too."""
+    text = json.dumps(result, indent=2)
+    if out:
+        from pathlib import Path
+
+        Path(out).write_text(text + "\n")
+    print(text)

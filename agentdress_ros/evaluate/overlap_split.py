@@ -8,7 +8,6 @@ Reads the committed v2 packs; simulates nothing.
 """
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -65,7 +64,8 @@ def main(argv=None) -> int:
     import argparse
 
     from ..engine import read_database
-    from .score_v3 import node_default_rows
+    from ..ros.params import default_engine
+    from .bench import print_json
 
     parser = argparse.ArgumentParser(prog="agentdress lab overlap-split", description=__doc__.split("\n")[0])
     parser.add_argument("--database", default="data/tshirt_default.h5")
@@ -73,13 +73,9 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=None, help="write the report (JSON) here too")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
-    engine = node_default_rows(read_database(args.database).garment)[-1][1]
-    report = {"database": args.database, "engine": engine,
-              "shares": split_shares(args.database, args.folder, engine=engine, progress=not args.quiet)}
-    text = json.dumps(report, indent=2)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
-    print(text)
+    engine = default_engine(read_database(args.database).garment)
+    print_json({"database": args.database, "engine": engine,
+                "shares": split_shares(args.database, args.folder, engine=engine, progress=not args.quiet)}, args.out)
     return 0
 
 

@@ -14,7 +14,6 @@ nothing.
 """
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -64,7 +63,8 @@ def shape_term(database, folder, engine: dict) -> dict:
 def main(argv=None) -> int:
     import argparse
 
-    from .score_v3 import node_default_rows
+    from ..ros.params import default_engine
+    from .bench import print_json
 
     parser = argparse.ArgumentParser(prog="agentdress lab shape-oracle", description=__doc__.split("\n")[0])
     parser.add_argument("--database", default="data/tshirt_default.h5")
@@ -74,12 +74,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from ..engine import read_database
 
-    engine = node_default_rows(read_database(args.database).garment)[-1][1]
-    report = shape_term(args.database, args.folder, engine)
-    text = json.dumps(report, indent=2)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
-    print(text)
+    print_json(shape_term(args.database, args.folder, default_engine(read_database(args.database).garment)), args.out)
     return 0
 
 
