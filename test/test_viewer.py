@@ -40,7 +40,6 @@ CHROMIUM = next((p for p in (shutil.which(n) for n in ("chromium", "chromium-bro
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium / chromium-browser / google-chrome on PATH "
                                                          "(Debian: apt-get install -y chromium)")
 ROOT = Path(__file__).resolve().parents[1]
-DOMAIN_ID = random.SystemRandom().randint(1, 200)
 BROWSER_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox", "--disable-gpu-sandbox",
                 "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run",
                 "--disable-quic"]
@@ -126,10 +125,11 @@ def _garment_pixels(image: np.ndarray) -> tuple[float, float]:
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
+def scene(tmp_path_factory, ros_domain):
     """node (T-shirt + trousers templates, body) + demo walk at 90 Hz + viewer, for the whole module."""
     tmp = tmp_path_factory.mktemp("client")
-    env = ros_env(DOMAIN_ID, str(tmp / "ros_log"))
+    domain = ros_domain()
+    env = ros_env(domain, str(tmp / "ros_log"))
     params = {"garments": ["tshirt", "trousers"], "garment_vertices": ["tshirt:1200", "trousers:1200"],
               "publish_body": True}
     children = {
@@ -142,7 +142,7 @@ def scene(tmp_path_factory):
     try:
         url = _viewer_url(children["viewer"])
         _wait_for_meshes(url, ("body", "tshirt", "trousers"), children)
-        yield url, children
+        yield url, children, domain
     finally:
         codes = {name: child.stop() for name, child in children.items()}
     assert all(code == 0 for code in codes.values()), {n: (c, children[n].output()[-2000:]) for n, c in codes.items()}
@@ -174,7 +174,7 @@ def _open(browser, url: str, xr: bool = False):
 
 
 def test_the_page_draws_the_walking_dressed_agent_with_three_webgl(scene, browser, tmp_path):
-    url, _ = scene
+    url = scene[0]
     context, page, errors = _open(browser, url)
     try:
         info = page.evaluate("""() => {
@@ -217,7 +217,7 @@ def test_the_page_skins_the_body_exactly_as_the_node_did(scene, browser):
     from agentdress_ros.ros.harness import ros_node, spin_until
     from agentdress_ros.ros.messages import cloud_to_vertices
 
-    url, _ = scene
+    url = scene[0]
     state = _state(url)
     assert state["agentdress_node/body"]["skinned"] and not state["agentdress_node/tshirt"]["skinned"], state
     # nobody takes the body's points yet (the viewer takes its bones): the node poses it without vertices
@@ -230,7 +230,7 @@ def test_the_page_skins_the_body_exactly_as_the_node_did(scene, browser):
     def on_cloud(msg):
         clouds[msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec] = cloud_to_vertices(msg)
 
-    with ros_node("client_body_check", DOMAIN_ID) as (client, executor):
+    with ros_node("client_body_check", scene[2]) as (client, executor):
         client.create_subscription(PointCloud2, "/agentdress_node/body/points", on_cloud, QoSProfile(
             depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT))
         assert spin_until(executor, lambda: len(clouds) > 20, 60.0), "no body clouds from the node"
@@ -256,7 +256,7 @@ def test_the_page_skins_the_body_exactly_as_the_node_did(scene, browser):
 
 
 def test_enter_vr_runs_the_xr_render_loop(scene, browser):
-    url, _ = scene
+    url = scene[0]
     context, page, errors = _open(browser, url, xr=True)
     try:
         button = page.locator("#vr-button")
@@ -285,7 +285,7 @@ def _tshirt_girth(page) -> float:
 
 
 def test_a_shape_slider_reaches_the_node_and_changes_the_mesh(scene, browser):
-    url, _ = scene
+    url = scene[0]
     context, page, errors = _open(browser, url)
     try:
         page.wait_for_function("() => document.querySelectorAll('#sliders input').length === 6", timeout=120_000)
@@ -307,7 +307,7 @@ def test_a_shape_slider_reaches_the_node_and_changes_the_mesh(scene, browser):
 
 
 def test_nothing_is_served_without_the_token(scene):
-    url, _ = scene
+    url = scene[0]
     base = url.rsplit("/", 2)[0]  # https://host:port
     for path in ("/", "/index.html", "/src/main.js", "/state.json", "/ws", "/" + "x" * 24 + "/"):
         with pytest.raises(urllib.error.HTTPError) as refused:
@@ -334,7 +334,7 @@ def test_frames_per_second_reaching_the_page(scene, browser):
     """One agent at the node's rate (the demo publishes at 90 Hz): frames keep reaching the page, and the rate is
     written to out/client_fps.json. The goal (60 per second) is a measurement for the README, not a timed test:
     software WebGL on a 2-core machine shared with the node, the demo and the server is no headset."""
-    url, _ = scene
+    url = scene[0]
     context, page, errors = _open(browser, url)
     try:
         page.wait_for_timeout(1000)
@@ -358,12 +358,12 @@ def _write_fps(case: str, result: dict):
     path.write_text(json.dumps(results, indent=1))
 
 
-def test_frames_per_second_per_agent_of_a_crowd_of_ten(browser, tmp_path):
+def test_frames_per_second_per_agent_of_a_crowd_of_ten(browser, tmp_path, ros_domain):
     """Ten agents in one node (crowd mode, T-shirt, trousers and body each, all near: full synthesis), poses at
     90 Hz each from the crowd demo: every agent's meshes reach the page and keep moving; the frames per second
     per agent are written to out/client_fps.json (a measurement for the README, not a timed test)."""
     agents = [f"agent_{i:03d}" for i in range(10)]
-    env = ros_env(DOMAIN_ID + 3, str(tmp_path / "ros_log"))
+    env = ros_env(ros_domain(), str(tmp_path / "ros_log"))
     params = {"garments": ["tshirt", "trousers"], "garment_vertices": ["tshirt:1200", "trousers:1200"],
               "publish_body": True, "agents": agents}
     children = {
@@ -402,12 +402,12 @@ def test_frames_per_second_per_agent_of_a_crowd_of_ten(browser, tmp_path):
 
 @pytest.mark.skipif(not os.environ.get("AGENTDRESS_PICTURES"), reason="set AGENTDRESS_PICTURES=<folder> to take "
                                                                       "the README's pictures of `make run`")
-def test_make_run_screenshot(browser, tmp_path):
+def test_make_run_screenshot(browser, tmp_path, ros_domain):
     """`make run` (agentdress run: node on the shipped databases, demo walk with the shape sweep, viewer) in the
     browser; its screenshot is saved for the README."""
     folder = Path(os.environ["AGENTDRESS_PICTURES"])
     folder.mkdir(parents=True, exist_ok=True)
-    env = ros_env(DOMAIN_ID + 7, str(tmp_path / "ros_log"))
+    env = ros_env(ros_domain(), str(tmp_path / "ros_log"))
     env["XDG_CONFIG_HOME"] = str(tmp_path / "config")
     run = ChildProcess([sys.executable, "-m", "agentdress_ros.ros.run_all", "--port", "0"], env, tmp_path / "run.log")
     try:
@@ -426,7 +426,7 @@ def test_make_run_screenshot(browser, tmp_path):
 
 @pytest.mark.skipif(not os.environ.get("AGENTDRESS_PICTURES"), reason="set AGENTDRESS_PICTURES=<folder> to take "
                                                                       "the README's pictures of `make run`")
-def test_walk_gif(browser, tmp_path):
+def test_walk_gif(browser, tmp_path, ros_domain):
     """The README's animated GIF: the node as `make run` starts it (shipped databases, body published) and the
     viewer, fed one pose at a time from this process - a whole period of the procedural walk, every 2nd frame at
     30 fps - each screenshot taken once the page has that pose's frame, so the loop plays the walk at its own speed
@@ -440,7 +440,7 @@ def test_walk_gif(browser, tmp_path):
 
     folder = Path(os.environ["AGENTDRESS_PICTURES"])
     folder.mkdir(parents=True, exist_ok=True)
-    domain = DOMAIN_ID + 9
+    domain = ros_domain()
     env = ros_env(domain, str(tmp_path / "ros_log"))
     databases = [f"{g}:{ROOT / 'data' / f'{g}_default.h5'}" for g in ("tshirt", "trousers")]
     children = {
@@ -507,14 +507,14 @@ def test_walk_gif(browser, tmp_path):
 
 @pytest.mark.skipif(not os.environ.get("AGENTDRESS_PICTURES"), reason="set AGENTDRESS_PICTURES=<folder> to take "
                                                                       "the README's pictures")
-def test_crowd_gif(browser, tmp_path):
+def test_crowd_gif(browser, tmp_path, ros_domain):
     """The README's crowd GIF: one node dressing six agents of the crowd demo (CMU clips and procedural motions,
     their own shapes, walking about an 8 m plaza; T-shirt, trousers and body each), screenshots of the page taken
     as fast as software drawing allows, each shown for the time it took (the loop plays at real speed)."""
     folder = Path(os.environ["AGENTDRESS_PICTURES"])
     folder.mkdir(parents=True, exist_ok=True)
     agents = [f"agent_{i:03d}" for i in range(6)]
-    env = ros_env(DOMAIN_ID + 11, str(tmp_path / "ros_log"))
+    env = ros_env(ros_domain(), str(tmp_path / "ros_log"))
     databases = [f"{g}:{ROOT / 'data' / f'{g}_default.h5'}" for g in ("tshirt", "trousers")]
     children = {
         "node": ChildProcess(node_args({"garments": ["tshirt", "trousers"], "garment_databases": databases,

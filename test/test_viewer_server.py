@@ -11,7 +11,6 @@ import http.client
 import json
 import logging
 import os
-import random
 import socket
 import stat
 import subprocess
@@ -198,7 +197,7 @@ def test_a_shape_flood_is_rate_limited_per_client_and_the_latest_value_wins(tmp_
     assert len(gaps) == 0 or gaps.min() >= interval * 0.9, gaps
 
 
-def test_the_bridge_picks_a_shape_topic_without_a_graph_lookup(monkeypatch):
+def test_the_bridge_picks_a_shape_topic_without_a_graph_lookup(monkeypatch, ros_domain):
     """The server hands shapes over on a worker thread; the ROS bridge then takes the agent's body-shape topic from
     its last discovery (every second, on the ROS thread) instead of asking the graph per shape."""
     rclpy = pytest.importorskip("rclpy", reason="rclpy (ros-jazzy-rclpy wheels) is not importable")
@@ -209,7 +208,7 @@ def test_the_bridge_picks_a_shape_topic_without_a_graph_lookup(monkeypatch):
     from agentdress_ros.ros.viewer import RosBridge
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    domain = random_domain()
+    domain = ros_domain()
     received = []
     reliable = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
     with ros_node("shape_listener", domain) as (listener, executor):
@@ -234,8 +233,42 @@ def test_the_bridge_picks_a_shape_topic_without_a_graph_lookup(monkeypatch):
     assert lookups == [], f"{len(lookups)} graph lookups for 6 shapes"
 
 
-def random_domain() -> int:
-    return random.SystemRandom().randint(1, 200)
+def test_a_status_topic_listed_after_its_mesh_topic_still_reaches_the_page(monkeypatch, ros_domain):
+    """The graph may list a node's mesh topic a discovery round before its ~/status topic: the bridge subscribes to
+    the status whenever it appears (before, a status missing in the mesh's first round was never subscribed)."""
+    rclpy = pytest.importorskip("rclpy", reason="rclpy (ros-jazzy-rclpy wheels) is not importable")
+    from shape_msgs.msg import Mesh
+    from std_msgs.msg import String
+
+    from agentdress_ros.ros.harness import ros_node, spin_until
+    from agentdress_ros.ros.viewer import RosBridge
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    domain = ros_domain()
+    with ros_node("agentdress_node", domain) as (node, executor):
+        node.create_publisher(Mesh, "~/tshirt/mesh", 1)
+        rclpy.init(domain_id=domain)
+        try:
+            scene = DisplayScene()
+            bridge = RosBridge(scene)
+            assert spin_until(executor, lambda: bridge.discover() or "/agentdress_node/tshirt/mesh" in bridge.topics,
+                              20.0)
+            assert bridge.status_sources == set()
+            status = node.create_publisher(String, "~/status", 10)
+            assert spin_until(executor, lambda: bridge.discover() or "/agentdress_node" in bridge.status_sources,
+                              20.0), bridge.topics
+            assert spin_until(executor, lambda: status.get_subscription_count() == 1, 20.0)
+            status.publish(String(data=json.dumps({"frames": 7})))
+
+            def delivered():
+                rclpy.spin_once(bridge.node, timeout_sec=0.05)
+                return scene.updates({})[3]
+
+            assert spin_until(executor, delivered, 20.0)
+            assert scene.updates({})[3] == [{"type": "status", "source": "/agentdress_node", "status": {"frames": 7}}]
+            bridge.node.destroy_node()
+        finally:
+            rclpy.shutdown()
 
 
 # ---- 4: slow and surplus clients -----------------------------------------------------------------------------------

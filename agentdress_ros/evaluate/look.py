@@ -25,7 +25,6 @@ import argparse
 import base64
 import heapq
 import json
-import random
 import sys
 import time
 from pathlib import Path
@@ -266,7 +265,7 @@ class LookSession:
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float32MultiArray
 
-        from ..ros.harness import ChildProcess, ros_env
+        from ..ros.harness import ChildProcess, random_domain, ros_env
         from ..ros.run_all import GARMENTS, node_command
 
         self.chromium = self.chromium or next((p for p in (shutil.which(n) for n in (
@@ -275,7 +274,7 @@ class LookSession:
             raise RuntimeError("no chromium / chromium-browser / google-chrome on PATH (Debian: apt-get install -y "
                                "chromium)")
         self.workdir.mkdir(parents=True, exist_ok=True)
-        domain = random.SystemRandom().randint(1, 200)
+        domain = random_domain()
         env = ros_env(domain, str(self.workdir / "ros_log"))
         databases = {g: self.data / f"{g}_default.h5" for g in GARMENTS if (self.data / f"{g}_default.h5").is_file()}
         self.children = {

@@ -1,7 +1,8 @@
 """Process harness shared by the tests and `agentdress bench node`: the node (and friends) as child processes on a
 private ROS domain, and a private rclpy context in this process. Every wait is bounded and waits on a condition.
 
-Environment of a run: a random ROS_DOMAIN_ID (so parallel runs do not hear each other), loopback-only discovery
+Environment of a run: a random ROS_DOMAIN_ID in 1-101 (so parallel runs do not hear each other; on Linux, ids above
+101 put DDS' ports into the ephemeral range, where another socket may already hold one), loopback-only discovery
 (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST; a late participant is discovered after ~3 s), logs in a temp dir.
 """
 from __future__ import annotations
@@ -19,13 +20,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "agentdress.yaml"
 
-__all__ = ["ChildProcess", "node_args", "ros_env", "ros_node", "spin_until"]
+__all__ = ["ChildProcess", "node_args", "random_domain", "ros_env", "ros_node", "spin_until"]
+
+SAFE_DOMAIN_IDS = 101  # 1..101: DDS ports below Linux' ephemeral range (32768-60999)
+
+
+def random_domain() -> int:
+    """A random ROS_DOMAIN_ID whose DDS ports no ephemeral socket can hold."""
+    return random.SystemRandom().randint(1, SAFE_DOMAIN_IDS)
 
 
 def ros_env(domain_id: int | None = None, log_dir: str | None = None) -> dict:
     """This process' environment with a private domain and loopback discovery."""
     env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(domain_id if domain_id is not None else random.SystemRandom().randint(1, 200))
+    env["ROS_DOMAIN_ID"] = str(domain_id if domain_id is not None else random_domain())
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env["ROS_LOG_DIR"] = log_dir or tempfile.mkdtemp(prefix="agentdress_roslog_")
     env["PYTHONUNBUFFERED"] = "1"

@@ -74,6 +74,14 @@ class RosBridge:
             if self.filter and not (prefix == self.filter or prefix.startswith(self.filter + "/")):
                 continue
             agent = prefix.lstrip("/")
+            # the status of the node that publishes it: the prefix itself, or its parent for a crowd agent. Checked
+            # every round: the graph may list a node's mesh topic a round before its status topic.
+            for source in (prefix, prefix.rsplit("/", 1)[0]):
+                status_topic = f"{source}/status"
+                if source and status_topic in topics and source not in self.status_sources:
+                    self.status_sources.add(source)
+                    self.node.create_subscription(String, status_topic, lambda msg, s=source: self._on_status(s, msg),
+                                                  10)
             if topic not in self.skinned and f"{prefix}/{garment}/skin" in topics \
                     and f"{prefix}/{garment}/bones" in topics:
                 self._subscribe_skin(topic, prefix, agent, garment)
@@ -91,13 +99,6 @@ class RosBridge:
             if topic not in self.skinned:
                 self.point_subs[topic] = self.node.create_subscription(
                     PointCloud2, f"{prefix}/{garment}/points", on_points, self.points_qos, raw=True)
-            # the status of the node that publishes it: the prefix itself, or its parent for a crowd agent
-            for source in (prefix, prefix.rsplit("/", 1)[0]):
-                status_topic = f"{source}/status"
-                if source and status_topic in topics and source not in self.status_sources:
-                    self.status_sources.add(source)
-                    self.node.create_subscription(String, status_topic, lambda msg, s=source: self._on_status(s, msg),
-                                                  10)
 
     def _subscribe_skin(self, topic: str, prefix: str, agent: str, garment: str):
         """Stream a skinned mesh as its binding and bone transforms; its points are no longer taken."""
