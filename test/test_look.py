@@ -10,7 +10,8 @@ import shutil
 import numpy as np
 import pytest
 
-from agentdress_ros.evaluate.look import Shell, boundary_loops, capped, edge_roughness, view_counts
+from agentdress_ros.evaluate.look import Shell, capped, edge_roughness, view_counts
+from agentdress_ros.garment.coverage import boundary_loops
 
 CHROMIUM = next((p for p in (shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")) if p), None)
 

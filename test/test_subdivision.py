@@ -59,3 +59,44 @@ def test_levels_zero_is_the_identity_and_float32_keeps_its_dtype():
     assert out.dtype == np.float32 and out.shape == (sub.n_vertices, 3) and len(sub.faces) == 16 * len(faces)
     with pytest.raises(ValueError, match="levels"):
         LoopSubdivision(faces, len(vertices), 4)
+
+
+def _tube(count: int = 48, radius: float = 0.08, rings: int = 4, zigzag: float = 0.0):
+    """An open cylinder (rings x count vertices, axis z, 3 cm between rings) whose two rims are the open boundaries;
+    zigzag: the bottom rim's vertices moved alternately up and down by this much (a saw-toothed hem)."""
+    angle = 2 * np.pi * np.arange(count) / count
+    vertices = np.concatenate([np.stack([radius * np.cos(angle), radius * np.sin(angle), np.full(count, 0.03 * k)], 1)
+                               for k in range(rings)])
+    vertices[:count, 2] += zigzag * (-1.0) ** np.arange(count)
+    faces = []
+    for k in range(rings - 1):
+        for i in range(count):
+            a, b, c, d = k * count + i, k * count + (i + 1) % count, (k + 1) * count + i, (k + 1) * count + (i + 1) % count
+            faces += [[a, b, d], [a, d, c]]
+    return vertices, np.array(faces)
+
+
+def test_boundary_smoothing_removes_a_saw_tooth_keeps_a_round_rim_and_leaves_the_inside_alone():
+    from agentdress_ros.engine.subdivision import boundary_smoothing
+
+    flat, faces = _tube()
+    jagged, _ = _tube(zigzag=0.005)
+    matrix = boundary_smoothing(faces, flat, sigma=0.05)
+    np.testing.assert_allclose(np.asarray(matrix.sum(axis=1)).ravel(), 1.0)  # affine invariance
+    smoothed = matrix @ jagged
+    count = 48
+    np.testing.assert_array_equal(smoothed[count:-count], jagged[count:-count])  # interior rows are the identity
+    # the 5 mm alternation (the highest frequency along the rim) is gone to round-off
+    assert np.abs(smoothed[:count, 2]).max() < 1e-6, np.abs(smoothed[:count, 2]).max()
+    # a circle of radius 8 cm keeps its radius within 1.4 % (the width is capped at half the radius, compensated)
+    radius = np.linalg.norm((matrix @ flat)[:count, :2], axis=1)
+    assert 0.08 * 0.986 < radius.min() <= radius.max() <= 0.08 + 1e-12, (radius.min(), radius.max())
+    # on the refined mesh the rim as drawn is the same circle, without the teeth
+    sub = LoopSubdivision(faces, len(flat), 1, offset=0.0, rest=flat)
+    refined = sub.apply(jagged)
+    rim = np.flatnonzero(np.isclose(np.asarray(sub.matrix[:, :count].sum(axis=1)).ravel(), 1.0))
+    assert np.abs(refined[rim, 2]).max() < 1e-3
+    unsmoothed = LoopSubdivision(faces, len(flat), 1, offset=0.0).apply(jagged)
+    assert np.abs(unsmoothed[rim, 2]).max() > 2e-3  # Loop's boundary rule alone keeps half the teeth
+    with pytest.raises(ValueError, match="rest has"):
+        LoopSubdivision(faces, len(flat), 1, rest=flat[:-1])

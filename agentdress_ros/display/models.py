@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from ..body import REFERENCE_SHAPE
-from ..engine.layering import bind_layers, bind_under, lift_over_inner, push_out_of_inner
+from ..engine.layering import bind_layers, bind_to_vertices, bind_under, lift_over_inner, push_out_of_inner
 from ..engine.subdivision import LoopSubdivision
 from ..garment.binding import face_normals, vertex_normals
 from ..garment.coverage import MAX_GAP, cover_depth, faces_with_vertices, sloped, tuck_depth
@@ -91,12 +91,16 @@ def _draped_rest(model, body) -> np.ndarray:
     return out
 
 
-def _layer_bindings(outer, inner, body):
-    """(the outer garment's vertices bound to the inner garment, the inner garment's bound under the outer one),
-    both as the two hang at the rest pose."""
+def _layer_bindings(outer, inner, body, outer_refine=None, inner_refine=None):
+    """(the outer garment's vertices bound to the inner garment, the inner garment's bound under the outer one,
+    the refined outer's vertices bound to the refined inner's (None unless both are refined)), all as the two hang
+    at the rest pose."""
     outer_rest, inner_rest = _draped_rest(outer, body), _draped_rest(inner, body)
+    fine = None
+    if outer_refine is not None and inner_refine is not None:
+        fine = bind_to_vertices(outer_refine.apply(outer_rest).copy(), inner_refine.apply(inner_rest))
     return (bind_layers(outer_rest, inner_rest, inner.faces),
-            bind_under(inner_rest, outer_rest, outer.faces))
+            bind_under(inner_rest, outer_rest, outer.faces), fine)
 
 
 class CoveredBodyModel(BodyModel):
@@ -139,11 +143,14 @@ class DisplayModel:
 
     `coarse` is the last output before refinement (what an outer layer is pushed out of)."""
 
-    def __init__(self, base, subdivision: LoopSubdivision | None = None, inner=None, binding=None, under=None):
+    def __init__(self, base, subdivision: LoopSubdivision | None = None, inner=None, binding=None, under=None,
+                 fine=None):
         self.base, self.subdivision, self.inner, self.binding, self.under = base, subdivision, inner, binding, under
+        self.fine = fine  # the refined outer bound to the refined inner: pushed out of it again after refinement
         self.name, self.kind = base.name, base.kind
         self.faces = subdivision.faces if subdivision is not None else base.faces
-        self.coarse = None
+        self.coarse = self.refined = None
+        self._fine_normals = self._out = None
         self.layer_ms = self.refine_ms = 0.0  # cost of the last frame's layering and refinement
         self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
         self._normals = None
@@ -183,7 +190,21 @@ class DisplayModel:
                 lift_over_inner(coarse, self.base.faces, inner, self.under, normals=self._own_normals, lift=self._lift)
         middle = time.perf_counter()
         self.coarse = coarse
-        out = self.subdivision.apply(coarse) if self.subdivision is not None else coarse
+        out = coarse
+        if self.subdivision is not None:  # into a buffer of this model's own: the subdivision's is shared per topology
+            refined = self.subdivision.apply(coarse)
+            if self._out is None or self._out.shape != refined.shape or self._out.dtype != refined.dtype:
+                self._out = np.empty_like(refined)
+            out = self._out
+            np.copyto(out, refined)
+        fine_inner = self.inner.refined if self.inner is not None else None
+        if self.fine is not None and fine_inner is not None and len(self.fine):
+            # Loop smooths the two layers differently (the shirt's wide triangles over the waistband's bulge): the
+            # refined shirt would dip under the refined trousers in slits 4 cm wide
+            if self._fine_normals is None or len(self._fine_normals) != len(fine_inner):
+                self._fine_normals = np.empty((len(fine_inner), 3), dtype=fine_inner.dtype)
+            push_out_of_inner(out, fine_inner, self.inner.faces, self.fine, normals=self._fine_normals)
+        self.refined = out
         self.layer_ms, self.refine_ms = 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle)
         return out
 
@@ -203,14 +224,16 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
         refine = None
         if subdivision:
             refine = _cached(("loop", subdivision) + _topology_key(base),
-                             lambda: LoopSubdivision(base.faces, base.n_vertices, subdivision))
+                             lambda: LoopSubdivision(base.faces, base.n_vertices, subdivision,
+                                                     rest=garment_rest(base, body)))
         inner = next((out[n] for n in reversed(order[:position]) if layer_of.get(n, 0) < layer_of.get(name, 0)),
                      None)
-        binding = under = None
+        binding = under = fine = None
         if inner is not None:
-            binding, under = _cached(("layer", shape_key) + _topology_key(base) + _topology_key(inner),
-                                     lambda: _layer_bindings(base, inner.base, body), _SHAPE_CACHE)
-        out[name] = DisplayModel(base, refine, inner, binding, under) if refine is not None or layered else base
+            binding, under, fine = _cached(
+                ("layer", shape_key, subdivision) + _topology_key(base) + _topology_key(inner),
+                lambda: _layer_bindings(base, inner.base, body, refine, inner.subdivision), _SHAPE_CACHE)
+        out[name] = DisplayModel(base, refine, inner, binding, under, fine) if refine is not None or layered else base
     if "body" in models:
         out["body"] = _covered_body(models["body"], garments, body)
     return out

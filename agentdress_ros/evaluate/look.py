@@ -32,6 +32,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from ..garment.coverage import boundary_loops
+
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = 512
 SIGMA = 0.02  # metres of arc length: the edge-smoothing Gaussian
@@ -48,29 +50,6 @@ MARK = np.array([255, 0, 255], dtype=np.uint8)
 
 
 # ---- geometry (pure array functions) -------------------------------------------------------------------------------
-def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
-    """The open boundaries of triangles faces (G, 3): a list of (L,) vertex-id loops, each in the direction its
-    faces run (edge a->b of a face), so a fan over it on the reverse winding closes the surface consistently."""
-    faces = np.asarray(faces, dtype=np.int64)
-    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    key = np.sort(directed, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    border = directed[counts[inverse.ravel()] == 1]
-    following = {int(a): int(b) for a, b in border}
-    loops, done = [], set()
-    for start in following:
-        if start in done:
-            continue
-        loop, v = [], start
-        while v not in done and v in following:
-            done.add(v)
-            loop.append(v)
-            v = following[v]
-        if len(loop) >= 3 and v == start:
-            loops.append(np.array(loop, dtype=np.int64))
-    return loops
-
-
 def capped(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The shell of a garment with its openings capped: vertices (V, 3), faces (G, 3) -> (V + L, 3), (G + C, 3),
     each open boundary closed by a fan from its centroid."""

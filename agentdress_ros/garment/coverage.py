@@ -33,9 +33,9 @@ OWNER_TOLERANCE = 0.01
 #: cloth_over: how far behind a skin point its cloth may lie and still cover it (the skin poking through).
 BELOW = 0.03
 
-__all__ = ["BELOW", "MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "cloth_over",
-           "cover_depth", "covered_faces", "covered_vertices", "faces_with_vertices", "garment_covered_faces",
-           "poke_through", "sloped", "surface_side", "tuck_depth"]
+__all__ = ["BELOW", "MARGIN", "MAX_GAP", "TUCK", "body_part_labels", "boundary_distance", "boundary_loops",
+           "cloth_over", "cover_depth", "covered_faces", "covered_vertices", "faces_with_vertices",
+           "garment_covered_faces", "poke_through", "sloped", "surface_side", "tuck_depth"]
 
 
 def boundary_edges(faces: np.ndarray) -> np.ndarray:
@@ -43,6 +43,29 @@ def boundary_edges(faces: np.ndarray) -> np.ndarray:
     edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     unique, counts = np.unique(edges, axis=0, return_counts=True)
     return unique[counts == 1]
+
+
+def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
+    """The open boundaries of triangles faces (G, 3): a list of (L,) vertex-id loops, each in the direction its
+    faces run (edge a->b of a face), so a fan over it on the reverse winding closes the surface consistently."""
+    faces = np.asarray(faces, dtype=np.int64)
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    key = np.sort(directed, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    border = directed[counts[inverse.ravel()] == 1]
+    following = {int(a): int(b) for a, b in border}
+    loops, done = [], set()
+    for start in following:
+        if start in done:
+            continue
+        loop, v = [], start
+        while v not in done and v in following:
+            done.add(v)
+            loop.append(v)
+            v = following[v]
+        if len(loop) >= 3 and v == start:
+            loops.append(np.array(loop, dtype=np.int64))
+    return loops
 
 
 def boundary_distance(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
