@@ -48,6 +48,8 @@ LAB_PASSTHROUGH = (
      "60-frame ramps (resumable)"),
     ("shape-oracle", ".evaluate.shape_oracle", "main", "what a perfect pose model leaves, scored against drapes made "
      "the database's way"),
+    ("page-shots", ".evaluate.page_shots", "main", "screenshots of `make run`'s page in headless Chromium and their "
+     "contact sheet"),
     ("overlap-split", ".evaluate.overlap_split", "main", "inside-the-body shares split into self-overlap and truly "
      "inside at several radii"),
     ("sequences", ".offline.sequences", "main", "simulate training clips as dynamic sequences (resumable) and pack them"),

@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 USER_COMMANDS = {"run", "view", "demo", "demo-png", "bench", "eval", "build", "lab"}
 LAB_COMMANDS = {"floor", "groundtruth-v3", "sequences", "settle", "regressor", "recurrent", "santesteban",
-                "shape-residual", "shape-oracle", "overlap-split"}
+                "shape-residual", "shape-oracle", "overlap-split", "page-shots"}
 
 
 def _between(text: str, table: str) -> str:

@@ -47,6 +47,34 @@ def _scene(vertices: int = 3) -> DisplayScene:
     return scene
 
 
+def _frame_keys(frame: bytes) -> dict:
+    """{mesh key: its entry} of a frame message (viewer.state.pack's layout)."""
+    size = int.from_bytes(frame[:4], "little")
+    return {m["key"]: m for m in json.loads(frame[4:4 + size])["meshes"]}
+
+
+def test_a_body_bound_again_for_a_new_shape_keeps_its_last_pose():
+    """A new shape rebinds the skinned body (a new rest): the client gets the new binding and, in the same update,
+    the last bone transforms, so it never draws a frame of the body in its rest pose (under posed trousers, feet on
+    the floor below a lifted knee). Bones for another skeleton are not carried over."""
+    scene = DisplayScene()
+    rest = np.zeros((3, 3), np.float32)
+    indices, weights = np.array([[0], [1], [1]]), np.ones((3, 1), np.float32)
+    scene.set_mesh(AGENT, "body", rest, np.array([[0, 1, 2]]))
+    scene.set_skin(AGENT, "body", rest, indices, weights)
+    pose = np.tile(np.hstack([np.eye(3), [[0.1], [0.2], [0.3]]]).astype(np.float32), (2, 1, 1))
+    assert scene.set_bones(AGENT, "body", pose, stamp=5.0)
+    seen = {}
+    scene.updates(seen)
+    scene.set_skin(AGENT, "body", rest + 0.01, indices, weights)  # the next shape
+    meshes, _, frame, _ = scene.updates(seen)
+    assert len(meshes) == 1 and frame is not None
+    assert _frame_keys(frame)[f"{AGENT}/body"]["bones"] == 2
+    scene.set_skin(AGENT, "body", rest, np.array([[0], [1], [4]]), weights)  # five bones: the old pose does not fit
+    meshes, _, frame, _ = scene.updates(seen)
+    assert len(meshes) == 1 and frame is None
+
+
 @pytest.fixture
 def served(tmp_path):
     """A server with one agent; on_shape records (agent, values, thread name)."""

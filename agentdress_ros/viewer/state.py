@@ -84,7 +84,9 @@ class DisplayScene:
 
     def set_skin(self, agent: str, garment: str, rest, indices, weights):
         """The binding of a skinned mesh: rest (V, 3), bone indices (V, K), weights (V, K). From then on its frames
-        are bone transforms (set_bones); a client gets the mesh again with it."""
+        are bone transforms (set_bones); a client gets the mesh again with it, and with it the last bone transforms
+        (a new body shape rebinds the body once a second in the demo: without a pose, the client drew it in its
+        rest pose until the next frame, feet on the floor under posed trousers)."""
         rest = np.ascontiguousarray(rest, dtype="<f4").reshape(-1, 3)
         indices = np.ascontiguousarray(indices, dtype="<u2").reshape(len(rest), -1)
         weights = np.ascontiguousarray(weights, dtype="<f4").reshape(indices.shape)
@@ -94,7 +96,9 @@ class DisplayScene:
             mesh = self._meshes.get(key)
             if mesh is not None:
                 self._generation += 1
-                mesh.generation, mesh.bones = self._generation, None
+                mesh.generation = self._generation
+                if mesh.bones is not None and int(indices.max()) >= len(mesh.bones):
+                    mesh.bones = None  # another skeleton: its pose comes with its next frame
             self.seq += 1
         self._changed()
 

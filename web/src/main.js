@@ -108,6 +108,10 @@ function setBones(mesh, buffer) {
 
 function setMesh(header, faces, vertices, indices, weights) {
   const old = meshes.get(header.key);
+  // a skinned mesh bound again (a new body shape) keeps its pose until its next bones: never a frame in rest pose
+  const pose = old && old.mesh.isSkinnedMesh && header.skin ? old.mesh.skeleton.bones.map((b) => b.matrixWorld.clone())
+    : null;
+  const stamp = pose ? stats.meshes[header.key]?.stamp : undefined;
   if (old) disposeMesh(old.mesh);
   const geometry = new THREE.BufferGeometry();
   const position = new THREE.BufferAttribute(new Float32Array(vertices), 3);
@@ -129,7 +133,10 @@ function setMesh(header, faces, vertices, indices, weights) {
   world.add(mesh);
   meshes.set(header.key, { mesh, agent: header.agent, garment: header.garment, dirty: false });
   stats.meshes[header.key] = { vertices: header.vertices, faces: header.faces, frames: 0, color: header.color,
-    skinned: Boolean(header.skin) };
+    skinned: Boolean(header.skin), stamp };
+  if (pose && pose.length === mesh.skeleton.bones.length) {
+    mesh.skeleton.bones.forEach((bone, b) => bone.matrixWorld.copy(pose[b]));
+  }
   panel.addMesh(header);
 }
 
