@@ -289,6 +289,8 @@ def test_a_shape_slider_reaches_the_node_and_changes_the_mesh(scene, browser):
     context, page, errors = _open(browser, url)
     try:
         page.wait_for_function("() => document.querySelectorAll('#sliders input').length === 6", timeout=120_000)
+        page.wait_for_function("() => agentdress.meshes['agentdress_node/body']?.frames > 0", timeout=60_000)
+        unposed = page.evaluate("() => agentdress.unposedFrames")
         before = _tshirt_girth(page)
         page.evaluate("""() => { const input = document.querySelector('#sliders input[name=weight]');
                                  input.value = 1.0; input.dispatchEvent(new Event('input')); }""")
@@ -301,6 +303,9 @@ def test_a_shape_slider_reaches_the_node_and_changes_the_mesh(scene, browser):
                                  input.value = 0.5; input.dispatchEvent(new Event('input')); }""")
         page.wait_for_function("() => Object.values(agentdress.status()).some(s => s.shape && s.shape[3] < 0.51)",
                                timeout=120_000)
+        page.wait_for_timeout(2000)
+        # each new shape rebinds the skinned body: it keeps its pose until its next bones, never drawn at rest
+        assert page.evaluate("() => agentdress.unposedFrames") == unposed
         assert not errors, errors
     finally:
         context.close()

@@ -8,6 +8,7 @@ import { Panel } from './panel.js';
 
 const stats = {
   renderer: null, three: THREE.REVISION, connected: false, renderFrames: 0, xrFrames: 0, framesReceived: 0,
+  unposedFrames: 0, // frames drawn with a skinned mesh that has no pose yet (its rest pose: a body under posed cloth)
   fps: {}, meshes: {}, startedAt: performance.now(),
 };
 window.agentdress = stats; // read by the tests and handy in the console
@@ -131,7 +132,8 @@ function setMesh(header, faces, vertices, indices, weights) {
   mesh.frustumCulled = false; // vertices move every frame: no stale bounding sphere
   mesh.name = header.key;
   world.add(mesh);
-  meshes.set(header.key, { mesh, agent: header.agent, garment: header.garment, dirty: false });
+  meshes.set(header.key, { mesh, agent: header.agent, garment: header.garment, dirty: false,
+    posed: !header.skin || Boolean(pose) });
   stats.meshes[header.key] = { vertices: header.vertices, faces: header.faces, frames: 0, color: header.color,
     skinned: Boolean(header.skin), stamp };
   if (pose && pose.length === mesh.skeleton.bones.length) {
@@ -148,6 +150,7 @@ function setFrames(frames) {
     if (m.bones) {
       if (!entry.mesh.isSkinnedMesh) continue;
       setBones(entry.mesh, m.bones);
+      entry.posed = true;
       stats.meshes[m.key].frames += 1;
       stats.meshes[m.key].stamp = m.stamp;
       continue;
@@ -229,6 +232,7 @@ function render() {
   if (!renderer.xr.isPresenting && now - lastRender < minFrameMs) return;
   lastRender = now;
   for (const entry of meshes.values()) {
+    if (!entry.posed) stats.unposedFrames += 1;
     if (entry.dirty) {
       entry.mesh.geometry.computeVertexNormals(); // smooth shading from this frame's vertices
       entry.dirty = false;
