@@ -46,16 +46,16 @@ def test_tiny_database_builds_and_reads_back(tiny_build):
     assert report["drape_vertices_inside_body_max"] == 0
     assert np.isfinite(db.pca_mean).all() and np.isfinite(db.ridge).all()
     # the drapes moved the cloth off its skinned warm start: the database holds information LBS does not
-    assert report["drape_displacement_mean_mm"] > 5.0
+    assert report["drape_displacement_mean_mm"] > 8.0  # measured 12.7 mm
     assert report["coverage_weighted_kmeans"] <= report["coverage_uniform"] + 1e-12
 
 
 def test_shape_model_errors_are_reported(tiny_build):
-    # Five shapes varying gender only and 40-frame drapes: a sanity bound; the acceptance numbers (< 2 mm train,
-    # < 5 mm held-out) are measured on full builds and recorded in the README.
+    # Five shapes varying gender only and 40-frame drapes, measured 2026-12-07: train 1.28 mm, held out 1.73 mm;
+    # bounds 50 % above (the build is deterministic: a regression moves these, noise does not).
     out, report = tiny_build
-    assert 0.0 < report["shape_model_train_error_mm"] < 10.0
-    assert 0.0 < report["shape_model_holdout_error_mm"] < 20.0
+    assert 0.5 < report["shape_model_train_error_mm"] < 1.9
+    assert 0.5 < report["shape_model_holdout_error_mm"] < 2.6
 
 
 def test_shape_model_is_exact_on_a_quadratic_family():
