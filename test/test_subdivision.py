@@ -79,13 +79,16 @@ def _tube(count: int = 48, radius: float = 0.08, rings: int = 4, zigzag: float =
 def test_boundary_smoothing_removes_a_saw_tooth_keeps_a_round_rim_and_leaves_the_inside_alone():
     from agentdress_ros.engine.subdivision import boundary_smoothing
 
-    flat, faces = _tube()
-    jagged, _ = _tube(zigzag=0.005)
+    flat, faces = _tube(rings=6)
+    jagged, _ = _tube(rings=6, zigzag=0.005)
     matrix = boundary_smoothing(faces, flat, sigma=0.05)
     np.testing.assert_allclose(np.asarray(matrix.sum(axis=1)).ravel(), 1.0)  # affine invariance
     smoothed = matrix @ jagged
     count = 48
-    np.testing.assert_array_equal(smoothed[count:-count], jagged[count:-count])  # interior rows are the identity
+    # beyond the first ring inside, rows are the identity; the first ring moves with its boundary neighbours
+    np.testing.assert_array_equal(smoothed[2 * count:-2 * count], jagged[2 * count:-2 * count])
+    moved = matrix @ (jagged + [0.0, 0.0, 0.01]) - smoothed  # a rigid lift of everything stays a rigid lift
+    np.testing.assert_allclose(moved[:, 2], 0.01, atol=1e-12)
     # the 5 mm alternation (the highest frequency along the rim) is gone to round-off
     assert np.abs(smoothed[:count, 2]).max() < 1e-6, np.abs(smoothed[:count, 2]).max()
     # a circle of radius 8 cm keeps its radius within 1.4 % (the width is capped at half the radius, compensated)
