@@ -25,6 +25,7 @@ import argparse
 import base64
 import heapq
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -141,6 +142,14 @@ def edge_roughness(vertices: np.ndarray, loop: np.ndarray, sigma: float = SIGMA)
     return 1e3 * np.linalg.norm(points - smooth, axis=1), np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
 
 
+def find_chromium() -> str:
+    """The system Chromium's path; RuntimeError saying how to install it when there is none."""
+    found = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
+    if found is None:
+        raise RuntimeError("no chromium / chromium-browser / google-chrome on PATH (Debian: apt-get install -y chromium)")
+    return found
+
+
 def decode_depth(rgba: np.ndarray) -> np.ndarray:
     """three.js' RGBA depth packing (packDepthToRGBA) of bytes (..., 4) -> window depth (...) in [0, 1]."""
     factors = np.array([255 / 256, 255 / 256 / 256, 255 / 256 / 65536, 1 / 16777216]) / 255.0
@@ -235,7 +244,6 @@ class LookSession:
 
     def __enter__(self):
         import os
-        import shutil
         import ssl
 
         import rclpy
@@ -247,11 +255,7 @@ class LookSession:
         from ..ros.harness import ChildProcess, random_domain, ros_env
         from ..ros.run_all import GARMENTS, node_command
 
-        self.chromium = self.chromium or next((p for p in (shutil.which(n) for n in (
-            "chromium", "chromium-browser", "google-chrome")) if p), None)
-        if self.chromium is None:
-            raise RuntimeError("no chromium / chromium-browser / google-chrome on PATH (Debian: apt-get install -y "
-                               "chromium)")
+        self.chromium = self.chromium or find_chromium()
         self.workdir.mkdir(parents=True, exist_ok=True)
         domain = random_domain()
         env = ros_env(domain, str(self.workdir / "ros_log"))

@@ -13,8 +13,8 @@ import tempfile
 from pathlib import Path
 
 from ..ros.harness import ChildProcess, random_domain, ros_env
+from .look import LookSession, find_chromium
 
-BROWSER_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox", "--disable-gpu-sandbox"]
 
 
 def contact_sheet(paths, out: Path, crop=(250, 80, 850, 1080), tile=(300, 500), columns: int = 4) -> Path:
@@ -35,10 +35,7 @@ def take(folder: Path, shots: int = 8, gap_ms: int = 700, run_args=(), chromium:
     """`shots` screenshots (1100 x 1100) of the page of `agentdress run` into folder/page_NN.png."""
     from playwright.sync_api import sync_playwright
 
-    chromium = chromium or next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p),
-                                None)
-    if chromium is None:
-        raise RuntimeError("no chromium / chromium-browser / google-chrome on PATH (Debian: apt-get install -y chromium)")
+    chromium = chromium or find_chromium()
     folder.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="agentdress_shots_"))
     env = ros_env(random_domain(), str(work / "ros_log"))
@@ -51,7 +48,7 @@ def take(folder: Path, shots: int = 8, gap_ms: int = 700, run_args=(), chromium:
             raise RuntimeError(f"the viewer printed no URL:\n{run.output()[-3000:]}")
         url = re.search(r"open (https://\S+)", run.output()).group(1)
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(executable_path=chromium, headless=True, args=BROWSER_ARGS)
+            browser = playwright.chromium.launch(executable_path=chromium, headless=True, args=LookSession.BROWSER_ARGS)
             page = browser.new_context(ignore_https_errors=True, viewport={"width": 1100, "height": 1100}).new_page()
             page.goto(url)
             page.wait_for_function("() => agentdress.framesReceived > 30", timeout=120_000)
