@@ -280,14 +280,14 @@ def test_floor_along_the_databases_path_warm_starts_every_shape_from_the_drape_a
     folder, report = quick_eval
     clip = shared_path("mocap", "cmu", f"{HELD_OUT_CLIPS[0]}.bvh")
     out = tmp_path / "floor"
-    args = (DATABASE, folder / "cache", folder / "report" / "ground_truth_drapes.npz", out, {"max_frames": 30})
+    args = (DATABASE, folder / "cache", folder / "report" / "ground_truth_drapes.npz", out, {"max_frames": 15})
     kwargs = dict(every=1, workers=0, progress=False, clips=[clip], quick=True, path="database",
                   beta0_pack=out / "ground_truth_beta0.npz")
     spread = ground_truth_spread(*args, **kwargs)
     shapes = len(report["test_set"]["betas"])
     assert spread["path"] == "database" and [c["shape"] for c in spread["cases"]] == list(range(shapes))
     warm = read_database(DATABASE).provenance["config"]["warm_drape"]
-    assert all(spread["alternative"][k] == v for k, v in warm.items()) and spread["alternative"]["max_frames"] == 30
+    assert all(spread["alternative"][k] == v for k, v in warm.items()) and spread["alternative"]["max_frames"] == 15
     assert all(0.0 < c["mean_cm"] < 10.0 for c in spread["cases"]) and len(spread["mean_cm_per_shape"]) == shapes
     packed = read_drape_pack(out / "floor_database_drapes.npz")["drapes"]
     assert {"beta0_0000_00"} | {f"floor_0000_{k:02d}" for k in range(shapes)} == set(packed)
