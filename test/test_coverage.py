@@ -289,7 +289,8 @@ def test_a_hole_is_seen_from_outside_unless_something_drawn_lies_in_front_of_it(
 
 def test_make_run_walk_draws_no_body_face_through_the_cloth():
     """The display check on what `make run` publishes (shipped databases, body with its covered faces left out),
-    over the walk at the heavier sweep shape where the last faces poked out: none drawn pokes through, few faces
+    over the walk at the heavier sweep shape where the last faces poked out: none drawn pokes through away from the
+    open edges (and no more than measured near them), few faces
     left out are seen from outside (23 per frame; 149 when the neck showed through the collar), and the layering
     keeps the T-shirt out of the trousers (under 0.5 % of its vertices)."""
     from agentdress_ros.evaluate.display_check import check
@@ -297,6 +298,9 @@ def test_make_run_walk_draws_no_body_face_through_the_cloth():
     report = check(subdivisions=(0,), frames_step=4, sweep_times=(5.0,))
     run = report["runs"]["subdivision=0,layered=True"]
     assert run["drawn_body_faces_poking_per_frame"] == 0.0, run
+    # within 3 cm of the open edges (cuffs, hem, collar) skin still pokes through: 25.9 faces per frame measured
+    # 2026-12-07 (the saw-tooth along a sleeve's edge); the bound holds it from growing
+    assert run["drawn_body_faces_poking_at_edges_per_frame"] < 31, run
     assert run["all_body_faces_poking_per_frame"] > 50  # with every face drawn, the check does see skin through
     assert run["hidden_body_faces_seen_from_outside_per_frame"] < 50, run
     assert run["tshirt_vertices_inside_trousers_pct"] < 0.5, run

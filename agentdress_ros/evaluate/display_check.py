@@ -5,7 +5,9 @@ default's engine knobs, the body published), over the demo walk at 30 fps and a 
 refinement asked:
 - skin through the cloth: drawn body faces whose centre lies outside a garment where it covers the body (the
   closest cloth facing the skin's way at least `edge_band` inside the garment's open edges), with the covered
-  faces left out and the kept band sunk (as published), and with every body face drawn (before);
+  faces left out and the kept band sunk (as published), and with every body face drawn (before); and the drawn
+  faces poking through within `edge_band` of the open edges (a cuff, a hem, a collar: where the rest leaves them
+  out, and where a viewer sees a saw-tooth of skin along the edge);
 - gaps: body faces left out whose centre no garment lies over (no cloth facing the skin's way within 6 cm along
   its normal: coverage.cloth_over), and those of them a viewer sees from outside (holes: facing one of 16 views
   around the agent with nothing drawn in front of them on a 4 mm depth buffer);
@@ -60,7 +62,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             model_set = _models(body, databases, subdivision, layered)
             plain = BodyModel(body)  # before: every face drawn, nothing sunk
             every_face = plain.faces
-            counts = {"drawn_poking": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0,
+            counts = {"drawn_poking": 0, "drawn_poking_at_edges": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0,
                       "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0, "seen": 0}
             timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}
             for beta in shapes:
@@ -90,8 +92,11 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                         counts["seen"] += seen
                     for name in ("tshirt", "trousers"):
                         garment, faces = out[name], models[name].faces
-                        counts["drawn_poking"] += int(poke_through(skin, drawn, garment, faces, edge_band=edge_band,
-                                                                   vertex_parts=parts).sum())
+                        inside_band = int(poke_through(skin, drawn, garment, faces, edge_band=edge_band,
+                                                       vertex_parts=parts).sum())
+                        counts["drawn_poking"] += inside_band
+                        counts["drawn_poking_at_edges"] += int(poke_through(skin, drawn, garment, faces, edge_band=0.0,
+                                                                            vertex_parts=parts).sum()) - inside_band
                         if layered:
                             counts["poking_all_faces"] += int(poke_through(plain_skin, every_face, garment, faces,
                                                                            edge_band=edge_band,
@@ -112,6 +117,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             report["runs"][f"subdivision={subdivision},layered={layered}"] = {
                 "frames": n,
                 "drawn_body_faces_poking_per_frame": counts["drawn_poking"] / n,
+                "drawn_body_faces_poking_at_edges_per_frame": counts["drawn_poking_at_edges"] / n,
                 "all_body_faces_poking_per_frame": counts["poking_all_faces"] / n if layered else None,
                 "hidden_body_faces_without_cloth_per_frame": counts["gaps"] / n if layered else None,
                 "hidden_body_faces_seen_from_outside_per_frame": counts["seen"] / n if layered else None,
