@@ -62,8 +62,8 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             model_set = _models(body, databases, subdivision, layered)
             plain = BodyModel(body)  # before: every face drawn, nothing sunk
             every_face = plain.faces
-            counts = {"drawn_poking": 0, "drawn_poking_at_edges": 0, "poking_all_faces": 0, "outer_inside_inner": 0, "outer_vertices": 0,
-                      "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0, "seen": 0}
+            counts = {"drawn_poking": 0, "drawn_poking_at_edges": 0, "poking_all_faces": 0, "outer_inside_inner": 0,
+                      "outer_vertices": 0, "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0, "seen": 0}
             timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}
             for beta in shapes:
                 model_set = build_model_set(replace(model_set.scene, beta=beta), body, model_set)
