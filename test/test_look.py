@@ -5,6 +5,7 @@ software WebGL (SwiftShader) - a few frames of the walk from the front: no hole,
 band of body faces is left out on purpose."""
 from __future__ import annotations
 
+import shutil
 
 import numpy as np
 import pytest
@@ -12,9 +13,7 @@ import pytest
 from agentdress_ros.evaluate.look import Shell, capped, edge_roughness, view_counts
 from agentdress_ros.garment.coverage import boundary_loops
 
-from agentdress_ros.evaluate.look import chromium_path  # noqa: E402
-
-CHROMIUM = chromium_path()
+CHROMIUM = next((p for p in (shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")) if p), None)
 
 
 def tube(radius=0.1, height=0.5, segments=24, rings=10):

@@ -18,6 +18,7 @@ import json
 import os
 import random
 import re
+import shutil
 import ssl
 import sys
 import time
@@ -35,9 +36,7 @@ from playwright.sync_api import sync_playwright  # noqa: E402
 
 from agentdress_ros.ros.harness import ChildProcess, node_args, ros_env  # noqa: E402
 
-from agentdress_ros.evaluate.look import chromium_path  # noqa: E402
-
-CHROMIUM = chromium_path()
+CHROMIUM = next((p for p in (shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")) if p), None)
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium / chromium-browser / google-chrome on PATH "
                                                          "(Debian: apt-get install -y chromium)")
 ROOT = Path(__file__).resolve().parents[1]
