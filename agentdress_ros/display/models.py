@@ -11,9 +11,11 @@ included when it is published) and returns them ready for display, inner layers 
   binding made once per shape, between the two garments as they hang at the rest pose on that shape (vertex ids
   and weights follow every pose: both garments follow the body), and lifted where a vertex of the lower garment
   would pass between its vertices (the reverse binding);
-- each garment refined by `subdivision` rounds of Loop subdivision (agentdress_ros.engine.subdivision), applied
-  last, after the engine's penetration handling and the layering.
-Coverage and subdivision matrices are cached per topology (a shape change reuses them), layer bindings per
+- each garment refined by `subdivision` rounds of Loop subdivision (agentdress_ros.engine.subdivision), after the
+  engine's penetration handling and the layering;
+- when the body is drawn, each garment's band along its open edges pushed off the skin as posed this frame
+  (agentdress_ros.engine.skin_clearance): the drawn skin there would show through the cuffs and hems in a saw-tooth.
+Coverage and subdivision matrices are cached per topology (a shape change reuses them), layer and skin bindings per
 topology and shape.
 """
 from __future__ import annotations
@@ -24,9 +26,10 @@ import numpy as np
 
 from ..body import REFERENCE_SHAPE
 from ..engine.layering import bind_layers, bind_to_vertices, bind_under, lift_over_inner, push_out_of_inner
+from ..engine.skin_clearance import EDGE_CLEARANCE, bind_edges_to_skin, push_off_skin
 from ..engine.subdivision import LoopSubdivision
 from ..garment.binding import face_normals, vertex_normals
-from ..garment.coverage import MAX_GAP, cover_depth, faces_with_vertices, sloped, tuck_depth
+from ..garment.coverage import MAX_GAP, boundary_distance, cover_depth, faces_with_vertices, sloped, tuck_depth
 from ..models.garment_models import BodyModel
 
 __all__ = ["POSE_RANGE", "TEMPLATE_LAYERS", "CoveredBodyModel", "DisplayModel", "always_covered", "dress_for_display",
@@ -141,17 +144,20 @@ def _coverage(model, body):
 class DisplayModel:
     """A garment model under the same protocol, its output pushed out of an inner garment and refined for display.
 
-    `coarse` is the last output before refinement (what an outer layer is pushed out of)."""
+    `coarse` is the last output before refinement (what an outer layer is pushed out of). `skin` (a SkinBinding of
+    the output's edge band to the drawn body `skin_body`, a CoveredBodyModel on the same shape) keeps the edges off
+    the skin."""
 
     def __init__(self, base, subdivision: LoopSubdivision | None = None, inner=None, binding=None, under=None,
-                 fine=None):
+                 fine=None, skin=None, skin_body=None):
         self.base, self.subdivision, self.inner, self.binding, self.under = base, subdivision, inner, binding, under
         self.fine = fine  # the refined outer bound to the refined inner: pushed out of it again after refinement
+        self.skin, self.skin_body = skin, skin_body
         self.name, self.kind = base.name, base.kind
         self.faces = subdivision.faces if subdivision is not None else base.faces
         self.coarse = self.refined = None
         self._fine_normals = self._out = None
-        self.layer_ms = self.refine_ms = 0.0  # cost of the last frame's layering and refinement
+        self.layer_ms = self.refine_ms = self.skin_ms = 0.0  # cost of the last frame's layering, refinement, edges
         self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
         self._normals = None
         if under is not None:  # the reverse binding's buffers: this garment's normals and lift
@@ -191,8 +197,9 @@ class DisplayModel:
         middle = time.perf_counter()
         self.coarse = coarse
         out = coarse
-        if self.subdivision is not None:  # into a buffer of this model's own: the subdivision's is shared per topology
-            refined = self.subdivision.apply(coarse)
+        # into a buffer of this model's own: the subdivision's is shared per topology, the base's is the engine's
+        if self.subdivision is not None or (self.skin is not None and out is not self._pushed):
+            refined = self.subdivision.apply(coarse) if self.subdivision is not None else coarse
             if self._out is None or self._out.shape != refined.shape or self._out.dtype != refined.dtype:
                 self._out = np.empty_like(refined)
             out = self._out
@@ -204,15 +211,23 @@ class DisplayModel:
             if self._fine_normals is None or len(self._fine_normals) != len(fine_inner):
                 self._fine_normals = np.empty((len(fine_inner), 3), dtype=fine_inner.dtype)
             push_out_of_inner(out, fine_inner, self.inner.faces, self.fine, normals=self._fine_normals)
+        refined = time.perf_counter()
+        if self.skin is not None:
+            transforms, _ = self.skin_body.body.pose(self.skin_body.shape, rotvecs, root_translation)
+            push_off_skin(out, self.skin, transforms)
         self.refined = out
-        self.layer_ms, self.refine_ms = 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle)
+        end = time.perf_counter()
+        self.layer_ms, self.refine_ms, self.skin_ms = 1e3 * (middle - start), 1e3 * (refined - middle), 1e3 * (
+            end - refined)
         return out
 
 
-def dress_for_display(models: dict, body, layers: dict | None = None, subdivision: int = 0, beta=None) -> dict:
+def dress_for_display(models: dict, body, layers: dict | None = None, subdivision: int = 0, beta=None,
+                      edge_clearance: bool = True) -> dict:
     """The node's models {name: model} ready for display (see the module docstring), ordered inner layers first and
     the body last. layers: {garment: layer} overriding TEMPLATE_LAYERS; subdivision: 0, 1 or 2 rounds; beta: the
-    shape the models are fitted to (the layer bindings are made per shape)."""
+    shape the models are fitted to (the layer and skin bindings are made per shape); edge_clearance: keep the
+    garments' edges off the body when it is among the models."""
     shape_key = tuple(np.asarray(beta, dtype=np.float64).ravel().tolist()) if beta is not None else None
     layer_of = dict(TEMPLATE_LAYERS, **(layers or {}))
     garments = {n: _base(m) for n, m in models.items() if n != "body"}
@@ -235,8 +250,31 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
                 lambda: _layer_bindings(base, inner.base, body, refine, inner.subdivision), _SHAPE_CACHE)
         out[name] = DisplayModel(base, refine, inner, binding, under, fine) if refine is not None or layered else base
     if "body" in models:
-        out["body"] = _covered_body(models["body"], garments, body)
+        covered = out["body"] = _covered_body(models["body"], garments, body)
+        if edge_clearance and EDGE_CLEARANCE > 0:
+            for name in order:
+                model = out[name]
+                if not isinstance(model, DisplayModel):
+                    model = out[name] = DisplayModel(model)
+                model.skin_body = covered
+                model.skin = _cached(("skin", shape_key, subdivision) + _topology_key(model) + covered.covered_by,
+                                     lambda: _skin_binding(model, covered, body), _SHAPE_CACHE)
     return out
+
+
+def _skin_binding(model: DisplayModel, covered: CoveredBodyModel, body):
+    """The edge band of a display model's output, as the garment hangs at rest on its shape, bound to the drawn
+    body's vertices on the same shape."""
+    rest = _draped_rest(model.base, body)
+    if model.subdivision is not None:
+        rest = model.subdivision.apply(rest.astype(np.float32)).astype(np.float64)
+    skin = np.asarray(covered.rest, dtype=np.float64)
+    drawn = np.unique(covered.faces)  # a hidden face's vertices are not seen: nothing to keep the cloth off
+    normals = vertex_normals(skin, covered.faces)
+    bones, weights = covered.skin_binding()[1:]
+    binding = bind_edges_to_skin(rest, boundary_distance(rest, model.faces), skin[drawn], normals[drawn],
+                                 bones[drawn], weights[drawn])
+    return binding
 
 
 def pose_range(motions=POSE_RANGE, every: int = POSE_STEP):
@@ -261,7 +299,7 @@ def always_covered(garments, body, poses, hidden=None, shapes=None) -> np.ndarra
     on every shape (S, 6) (default: the reference shape). Hiding them opens no gap over that range: where such a
     face pokes out of its garment, the cloth is right over it. garments: models (cloned here, the given ones are not
     touched); hidden (F,): faces not checked (left False)."""
-    from ..garment.coverage import boundary_distance, cloth_over
+    from ..garment.coverage import cloth_over
 
     shapes = np.asarray([REFERENCE_SHAPE] if shapes is None else shapes, dtype=np.float64)
     if len(poses) == 0 or len(shapes) == 0:

@@ -64,7 +64,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             every_face = plain.faces
             counts = {"drawn_poking": 0, "drawn_poking_at_edges": 0, "poking_all_faces": 0, "outer_inside_inner": 0,
                       "outer_vertices": 0, "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0, "seen": 0}
-            timing = {"engine_ms": [], "layer_ms": [], "refine_ms": []}
+            timing = {"engine_ms": [], "layer_ms": [], "refine_ms": [], "skin_ms": []}
             for beta in shapes:
                 model_set = build_model_set(replace(model_set.scene, beta=beta), body, model_set)
                 plain.set_shape(beta)
@@ -80,9 +80,10 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                         out[name] = np.array(model.synthesize(rotvecs, root), dtype=np.float64)
                         total = 1e3 * (time.perf_counter() - start)
                         if name != "body":
-                            timing["layer_ms"].append(getattr(model, "layer_ms", 0.0))
-                            timing["refine_ms"].append(getattr(model, "refine_ms", 0.0))
-                            timing["engine_ms"].append(total - timing["layer_ms"][-1] - timing["refine_ms"][-1])
+                            stages = {key: getattr(model, key, 0.0) for key in ("layer_ms", "refine_ms", "skin_ms")}
+                            for key, value in stages.items():
+                                timing[key].append(value)
+                            timing["engine_ms"].append(total - sum(stages.values()))
                     skin = out["body"]
                     plain_skin = np.array(plain.synthesize(rotvecs, root), dtype=np.float64) if layered else None
                     drawn = models["body"].faces

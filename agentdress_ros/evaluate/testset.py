@@ -215,7 +215,7 @@ def held_out_sequences(db, body, garment, config: HeldOutConfig, betas, folder, 
 
     drape = DrapeSettings(**{k: v for k, v in config.drape.items() if k != "ramp_frames"})
     # the sequence reaches its first pose the way the static drapes reach theirs: the same ramp, and settles there
-    # within their frame budget (v1 and v2: the sequence defaults, 30 and 120; the quick set: 8 and 60)
+    # within their frame budget (v1 and v2: the sequence defaults, 30 and 120; the quick set: 8 and 30)
     default = SequenceSettings()
     settings = SequenceSettings(drape=drape, ramp_frames=config.drape.get("ramp_frames", default.ramp_frames),
                                 settle_frames=min(default.settle_frames, drape.max_frames))

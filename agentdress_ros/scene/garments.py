@@ -79,7 +79,7 @@ class GarmentLibrary:
             models = {g.name: self.get(g) for g in garments}
             equal_layers = {name: 0 for name in models}  # the garments are not layered here: only the body is made
             model = dress_for_display({**models, "body": self.get(GarmentSpec("body"))}, self.body,
-                                      equal_layers)["body"]
+                                      equal_layers, edge_clearance=False)["body"]
             with self._lock:
                 model = self._models.setdefault(key, model)
         return model
