@@ -87,14 +87,14 @@ def _drape_files(out: Path):
 
 
 def test_killed_build_resumes_to_the_same_database(tiny_build, tmp_path):
-    """A build stopped part way (here: the tiny build's work folder less its last anchor's drapes and a sequence
-    frame) is killed again while it drapes what is missing, then resumed on two dask workers: no database file from
-    the killed run, finished drapes reused (not redone), and the same database as the uninterrupted, in-process tiny
-    build."""
+    """A build stopped part way (here: the tiny build's work folder less one anchor drape and a sequence frame) is
+    killed again while it drapes what is missing (one finished, the other in flight), then resumed on two dask
+    workers: no database file from the killed run, finished drapes reused (not redone), and the same database as the
+    uninterrupted, in-process tiny build."""
     reference_path, _ = tiny_build
     out = tmp_path / "db.h5"
     work = _copy_work(tiny_build, tmp_path)
-    missing = ["anchor_0001_02", "anchor_0001_03", "anchor_0001_04", "sequence_0001_00"]
+    missing = ["anchor_0001_04", "sequence_0001_00"]
     for key in missing:
         (work / "drapes" / f"{key}.npz").unlink()
     kept = {p.name for p in _drape_files(out)}
