@@ -333,6 +333,40 @@ def test_the_edge_push_blends_the_bones_of_the_bound_skin_like_the_body_does():
     np.testing.assert_allclose(points, [[0.0, 0.0, 0.05 + EDGE_CLEARANCE]], atol=1e-12)
 
 
+def test_with_the_body_drawn_each_garments_edge_band_is_kept_off_the_posed_skin(body):
+    """Each shipped garment dressed as `make run` dresses it (one Loop round, body drawn), alone so that no layering
+    mixes in: its display model carries its edge band's skin binding, and along a walk the push moves only band
+    vertices, never more than its cap; without the body there is nothing to keep the cloth off (no binding)."""
+    from pathlib import Path
+
+    from agentdress_ros.engine.config import EngineKnobs
+    from agentdress_ros.engine.skin_clearance import MAX_PUSH
+    from agentdress_ros.motion.procedural import make_motion
+    from agentdress_ros.ros.params import default_engine
+    from agentdress_ros.ros.runtime import SceneSpec, build_model_set
+    from agentdress_ros.scene.garments import GarmentSpec
+
+    data = Path(__file__).resolve().parents[1] / "data"
+    beta = (0.5, 0.5, 0.5, 0.5, 0.5, 0.5)
+    motion = make_motion("walk", fps=30.0)
+    for name in ("tshirt", "trousers"):
+        spec = (GarmentSpec(name, None, str(data / f"{name}_default.h5"), EngineKnobs.of(**default_engine(name))),)
+        drawn = build_model_set(SceneSpec(spec, True, beta, display_subdivision=1), body).models[name]
+        bare = build_model_set(SceneSpec(spec, False, beta, display_subdivision=1), body).models[name]
+        band = drawn.skin.band
+        assert 100 < len(band) < drawn.n_vertices // 3, (name, len(band))
+        assert getattr(bare, "skin", None) is None
+        outside = np.setdiff1d(np.arange(drawn.n_vertices), band)
+        moved = 0
+        for k in range(0, len(motion.rotvecs), 8):
+            pushed = np.array(drawn.synthesize(motion.rotvecs[k], motion.root_translation[k]), dtype=np.float64)
+            plain = np.array(bare.synthesize(motion.rotvecs[k], motion.root_translation[k]), dtype=np.float64)
+            step = np.linalg.norm(pushed - plain, axis=1)
+            assert step[outside].max() < 1e-6 and step.max() <= MAX_PUSH + 1e-5, (name, k, step.max())
+            moved += int(np.count_nonzero(step > 1e-4))
+        assert moved > 0, name  # the walk does bring the edges under the skin
+
+
 def test_make_run_walk_draws_no_body_face_through_the_cloth():
     """The display check on what `make run` publishes (shipped databases, body with its covered faces left out),
     over the walk at the heavier sweep shape where the last faces poked out: none drawn pokes through away from the

@@ -257,7 +257,8 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
                 if not isinstance(model, DisplayModel):
                     model = out[name] = DisplayModel(model)
                 model.skin_body = covered
-                model.skin = _cached(("skin", shape_key, subdivision) + _topology_key(model) + covered.covered_by,
+                body_shape = tuple(np.asarray(covered.shape.beta, dtype=np.float64).ravel().tolist())
+                model.skin = _cached(("skin", body_shape, subdivision) + _topology_key(model) + covered.covered_by,
                                      lambda: _skin_binding(model, covered, body), _SHAPE_CACHE)
     return out
 
