@@ -252,12 +252,12 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
     if "body" in models:
         covered = out["body"] = _covered_body(models["body"], garments, body)
         if edge_clearance and EDGE_CLEARANCE > 0:
+            body_shape = tuple(np.asarray(covered.shape.beta, dtype=np.float64).ravel().tolist())
             for name in order:
                 model = out[name]
-                if not isinstance(model, DisplayModel):
+                if not isinstance(model, DisplayModel):  # its output is changed: a display model owns the buffer
                     model = out[name] = DisplayModel(model)
                 model.skin_body = covered
-                body_shape = tuple(np.asarray(covered.shape.beta, dtype=np.float64).ravel().tolist())
                 model.skin = _cached(("skin", body_shape, subdivision) + _topology_key(model) + covered.covered_by,
                                      lambda: _skin_binding(model, covered, body), _SHAPE_CACHE)
     return out
@@ -273,9 +273,8 @@ def _skin_binding(model: DisplayModel, covered: CoveredBodyModel, body):
     drawn = np.unique(covered.faces)  # a hidden face's vertices are not seen: nothing to keep the cloth off
     normals = vertex_normals(skin, covered.faces)
     bones, weights = covered.skin_binding()[1:]
-    binding = bind_edges_to_skin(rest, boundary_distance(rest, model.faces), skin[drawn], normals[drawn],
-                                 bones[drawn], weights[drawn])
-    return binding
+    return bind_edges_to_skin(rest, boundary_distance(rest, model.faces), skin[drawn], normals[drawn], bones[drawn],
+                              weights[drawn])
 
 
 def pose_range(motions=POSE_RANGE, every: int = POSE_STEP):

@@ -18,6 +18,8 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..body.kinematics import skin_point, skin_vertex
+
 __all__ = ["EDGE_BAND", "EDGE_CLEARANCE", "EDGE_NEIGHBORS", "MAX_PUSH", "SkinBinding", "bind_edges_to_skin",
            "push_off_skin"]
 
@@ -75,18 +77,13 @@ def _push(points, band, neighbors, rest, normals, bones, weights, transforms, cl
     n_skin = rest.shape[0]
     posed = np.empty((n_skin, 3))
     posed_normals = np.empty((n_skin, 3))
-    blend = np.empty((3, 4))
-    for u in range(n_skin):  # linear blend skinning of the bound body vertices and of their normals
-        blend[:] = 0.0
-        for i in range(bones.shape[1]):
-            w = weights[u, i]
-            if w != 0.0:
-                blend += w * transforms[bones[u, i]]
+    for u in range(n_skin):  # the bound body vertices skinned as the body is, and their normals by the same blend
+        posed[u, 0], posed[u, 1], posed[u, 2] = skin_vertex(rest, bones, weights, transforms, u)
+        tip = skin_point(rest[u, 0] + normals[u, 0], rest[u, 1] + normals[u, 1], rest[u, 2] + normals[u, 2], bones,
+                         weights, u, transforms)
         length = 0.0
         for a in range(3):
-            posed[u, a] = (blend[a, 0] * rest[u, 0] + blend[a, 1] * rest[u, 1] + blend[a, 2] * rest[u, 2]
-                           + blend[a, 3])
-            posed_normals[u, a] = blend[a, 0] * normals[u, 0] + blend[a, 1] * normals[u, 1] + blend[a, 2] * normals[u, 2]
+            posed_normals[u, a] = tip[a] - posed[u, a]
             length += posed_normals[u, a] ** 2
         length = np.sqrt(length)
         if length > 0.0:

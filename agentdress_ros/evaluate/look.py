@@ -142,14 +142,9 @@ def edge_roughness(vertices: np.ndarray, loop: np.ndarray, sigma: float = SIGMA)
     return 1e3 * np.linalg.norm(points - smooth, axis=1), np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
 
 
-def chromium_path() -> str | None:
-    """The system Chromium's path, or None."""
-    return next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
-
-
 def find_chromium() -> str:
     """The system Chromium's path; RuntimeError saying how to install it when there is none."""
-    found = chromium_path()
+    found = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
     if found is None:
         raise RuntimeError("no chromium / chromium-browser / google-chrome on PATH (Debian: apt-get install -y chromium)")
     return found
