@@ -294,9 +294,9 @@ def _rotation_x(angle: float) -> np.ndarray:
 
 def test_an_edge_dipping_under_the_skin_is_pushed_to_the_clearance_along_the_posed_normal():
     """A flat skin (z = 0, normals +z) on one bone, and a garment edge band over it: a vertex 1 cm under the skin
-    comes out to 2 mm above it, one already 1 cm above stays, one 5 cm under moves by the capped 2 cm, a vertex
-    outside the band is never touched; with the bone turned 90 degrees about x the same holds along the turned
-    normal (+z becomes -y)."""
+    comes out to 2 mm above it, one already 1 cm above stays, one 5 cm under (beyond the 2 cm a vertex may lie under
+    the skin it is kept off: across a fold of the body) stays, a vertex outside the band is never touched; with the
+    bone turned 90 degrees about x the same holds along the turned normal (+z becomes -y)."""
     from agentdress_ros.engine.skin_clearance import EDGE_CLEARANCE, MAX_PUSH, bind_edges_to_skin, push_off_skin
 
     skin, _ = grid(11, 0.5)
@@ -311,9 +311,12 @@ def test_an_edge_dipping_under_the_skin_is_pushed_to_the_clearance_along_the_pos
         rotation = _rotation_x(angle)
         transforms = np.concatenate([rotation, np.zeros((3, 1))], axis=1)[None]
         points = garment @ rotation.T  # the garment as posed with the bone
-        assert push_off_skin(points, binding, transforms) == 2
+        assert push_off_skin(points, binding, transforms) == 1
         height = (points @ rotation)[:, 2]  # back in the bone's frame: the height over the skin
-        np.testing.assert_allclose(height, [EDGE_CLEARANCE, 0.01, -0.05 + MAX_PUSH, -0.01], atol=1e-12)
+        np.testing.assert_allclose(height, [EDGE_CLEARANCE, 0.01, -0.05, -0.01], atol=1e-12)
+        deep = np.array([[0.0, 0.0, -MAX_PUSH + EDGE_CLEARANCE + 0.001]]) @ rotation.T  # just within reach
+        push_off_skin(deep, bind_edges_to_skin(deep @ rotation, [0.0], skin, normals, bones, weights), transforms)
+        np.testing.assert_allclose((deep @ rotation)[0, 2], EDGE_CLEARANCE, atol=1e-12)
         np.testing.assert_allclose((points @ rotation)[:, :2], garment[:, :2], atol=1e-12)  # along the normal only
 
 

@@ -31,8 +31,9 @@ EDGE_BAND = 0.03
 EDGE_CLEARANCE = 0.002
 #: Skin vertices each band vertex is bound to (their tangent planes together approximate the skin under it).
 EDGE_NEIGHBORS = 4
-#: The most one frame pushes a vertex, metres: a vertex far under a plane lies across a fold of the body (an arm
-#: against the torso), not under that skin.
+#: The deepest a vertex may lie under a plane and still be pushed out of it, metres: a vertex farther under lies
+#: across a fold of the body (an arm against the torso) or beyond the skin (a loose hem around the ankle, under
+#: the plane of the foot's far side), not under that skin. Pushing those by a capped amount made a loose hem jagged.
 MAX_PUSH = 0.02
 
 
@@ -93,13 +94,13 @@ def _push(points, band, neighbors, rest, normals, bones, weights, transforms, cl
     for m in range(band.shape[0]):
         v = band[m]
         best, chosen = 0.0, -1
-        for j in range(neighbors.shape[1]):  # the plane that lifts it most, its push capped
+        for j in range(neighbors.shape[1]):  # the plane that lifts it most, among those it lies just under
             u = neighbors[m, j]
             height = 0.0
             for a in range(3):
                 height += (points[v, a] - posed[u, a]) * posed_normals[u, a]
-            push = min(clearance - height, max_push)
-            if push > best:
+            push = clearance - height
+            if best < push <= max_push:
                 best, chosen = push, u
         if chosen >= 0:
             for a in range(3):
@@ -111,7 +112,8 @@ def _push(points, band, neighbors, rest, normals, bones, weights, transforms, cl
 def push_off_skin(points, binding: SkinBinding, transforms, clearance: float = EDGE_CLEARANCE,
                   max_push: float = MAX_PUSH) -> int:
     """Push the band vertices of points (V, 3) (changed in place) to at least `clearance` outside the tangent plane of
-    each bound skin vertex posed by transforms (B, 3, 4); returns how many moved."""
+    each bound skin vertex posed by transforms (B, 3, 4), where they lie at most `max_push` under it; returns how
+    many moved."""
     if len(binding) == 0:
         return 0
     return int(_push(points, binding.band, binding.neighbors, binding.rest, binding.normals, binding.bones,
