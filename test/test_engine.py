@@ -352,3 +352,28 @@ def test_garment_and_body_are_fitted_to_the_same_shape_beyond_the_training_range
     assert model.shape_limits == {"clamped": [], "held": ["age", "proportions"]}
     model.set_shape(np.full(6, 1.5))  # outside [0, 1]: clamped for body and garment alike
     assert model.shape_limits["clamped"] == list(engine.db.beta_names)
+
+
+@pytest.mark.parametrize("pose_model", ["examples", "lbs"])
+def test_a_refit_clone_leaves_the_live_engines_frames_and_continues_its_history(db, body, pose_model):
+    """The node refits a clone on a worker thread and drapes it at rest for the display bindings while the live
+    engine keeps dressing frames: nothing the clone computes may reach the live frame or its decay history (a
+    shared buffer published a frame mixing rest-pose and posed vertices); swapped in, the clone continues the decay
+    as the live engine would have."""
+    config = EngineConfig(pose_model=pose_model, decay=True)
+    live, untouched = Engine(db, body, config), Engine(db, body, config)
+    rng = np.random.default_rng(5)
+    poses = [rng.normal(scale=0.3, size=(body.n_bones, 3)) for _ in range(4)]
+    for pose in poses[:2]:
+        frame = live.synthesize(pose)
+        untouched.synthesize(pose)
+    published = frame.copy()
+    clone = live.clone()
+    clone.set_shape(np.clip(np.asarray(db.beta0) + 0.3, 0.0, 1.0))
+    for _ in range(2):
+        clone.synthesize(np.zeros((body.n_bones, 3)))
+    clone.reset()
+    np.testing.assert_array_equal(frame, published)  # the view last returned by the live engine is untouched
+    np.testing.assert_array_equal(live.synthesize(poses[2]), untouched.synthesize(poses[2]))
+    same_shape = live.clone()
+    np.testing.assert_array_equal(same_shape.synthesize(poses[3]), untouched.synthesize(poses[3]))

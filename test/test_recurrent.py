@@ -78,6 +78,14 @@ def test_state_restarts_on_reset_and_on_a_pose_jump_and_forks_keep_their_own(bod
     fork = engine.fork()
     fork_out = [fork.pose_model.evaluate(p, np.zeros(3), None).copy() for p in poses]
     np.testing.assert_array_equal(np.asarray(fork_out), np.asarray(first))  # its own state, from zero
+    # a clone (the node's shape refit) continues the state where it was taken, and leaves the original's alone
+    engine.reset()
+    for p in poses[:6]:
+        engine.pose_model.evaluate(p, np.zeros(3), None)
+    clone = engine.clone()
+    for k in range(6, len(poses)):
+        np.testing.assert_array_equal(clone.pose_model.evaluate(poses[k], np.zeros(3), None), first[k])
+    np.testing.assert_array_equal(engine.pose_model.evaluate(poses[6], np.zeros(3), None), first[6])
 
 
 def test_database_round_trip_and_a_wrong_shape_named(tmp_path, database, trained):

@@ -72,6 +72,14 @@ def _topology_key(model) -> tuple:
     return (base.name, base.kind, base.n_vertices, str(getattr(base, "path", "")), hash(base.faces.tobytes()))
 
 
+def _drape_key(model) -> tuple:
+    """What decides how a model drapes, beyond its topology: its class and engine settings. Coverage and the layer
+    and skin bindings are made from the model's own rest drape, so two models of one database with other pose
+    models (a crowd tier's examples, Santesteban's) must not share them."""
+    base = _base(model)
+    return _topology_key(model) + (type(base).__name__, repr(getattr(getattr(base, "engine", None), "config", None)))
+
+
 def garment_rest(model, body) -> np.ndarray:
     """The garment (V, 3) of a model at rest on the reference shape: a database's skinning rest, or the template
     fitted by its binding."""
@@ -138,7 +146,7 @@ def _coverage(model, body):
         depth = cover_depth(shape.vertices, body.body_faces, _reference_drape(model, body), _base(model).faces)
         return tuck_depth(depth), depth
 
-    return _cached(("coverage",) + _topology_key(model), make)
+    return _cached(("coverage",) + _drape_key(model), make)
 
 
 class DisplayModel:
@@ -246,7 +254,7 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
         binding = under = fine = None
         if inner is not None:
             binding, under, fine = _cached(
-                ("layer", shape_key, subdivision) + _topology_key(base) + _topology_key(inner),
+                ("layer", shape_key, subdivision) + _drape_key(base) + _drape_key(inner),
                 lambda: _layer_bindings(base, inner.base, body, refine, inner.subdivision), _SHAPE_CACHE)
         out[name] = DisplayModel(base, refine, inner, binding, under, fine) if refine is not None or layered else base
     if "body" in models:
@@ -258,7 +266,7 @@ def dress_for_display(models: dict, body, layers: dict | None = None, subdivisio
                 if not isinstance(model, DisplayModel):  # its output is changed: a display model owns the buffer
                     model = out[name] = DisplayModel(model)
                 model.skin_body = covered
-                model.skin = _cached(("skin", body_shape, subdivision) + _topology_key(model) + covered.covered_by,
+                model.skin = _cached(("skin", body_shape, subdivision) + _drape_key(model) + covered.covered_by,
                                      lambda: _skin_binding(model, covered, body), _SHAPE_CACHE)
     return out
 
@@ -335,7 +343,7 @@ def always_covered(garments, body, poses, hidden=None, shapes=None) -> np.ndarra
 
 
 def _covered_body(model, garments: dict, body):
-    key = tuple(sorted(_topology_key(g) for g in garments.values()))
+    key = tuple(sorted(_drape_key(g) for g in garments.values()))
     if getattr(model, "covered_by", None) == key:
         return model
     deep = np.zeros(len(body.body_faces), dtype=bool)

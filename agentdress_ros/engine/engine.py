@@ -510,6 +510,19 @@ class Engine:
         twin._buffers[0][...] = self._buffers[self._current]
         return twin
 
+    def clone(self) -> "Engine":
+        """The same agent's engine, to be refitted off the frame path (set_shape on a worker thread) and swapped in:
+        a fork, so that nothing it computes meanwhile (a rest-pose drape for a binding) reaches the live engine's
+        frame buffers or decay history, that starts from this engine's decay history (a shape refit is no cut in
+        the motion)."""
+        twin = self.fork()
+        twin._distances[...] = self._distances
+        twin._has_distances = self._has_distances
+        carry = getattr(twin.pose_model, "continue_from", None)
+        if callable(carry):
+            carry(self.pose_model)
+        return twin
+
     def can_fork_pose_model(self, name: str) -> bool:
         """Whether a fork may run pose model `name`: neither this engine nor the fork folds anchor residuals into
         the shape state (which is then the same for every pose model)."""

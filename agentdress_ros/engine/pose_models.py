@@ -154,6 +154,11 @@ class ExamplePoseModel:
         twin.out = np.empty_like(self.out)
         return twin
 
+    def continue_from(self, other: "ExamplePoseModel") -> None:
+        """Take over another fork's decay history (a refitted clone continues the motion)."""
+        self.state[...] = other.state
+        self.has_state = other.has_state
+
     def evaluate(self, theta, root, frame):
         c = self.context
         region_neighbours(theta.reshape(-1), self.features, c.dofs, c.region_dof, c.eps, c.power, c.damping,
@@ -458,6 +463,13 @@ class RecurrentPoseModel:
     def reset(self) -> None:
         self.state[:] = 0.0
         self._has_last = False
+
+    def continue_from(self, other: "RecurrentPoseModel") -> None:
+        """Take over another fork's recurrent state and last pose (a refitted clone continues the motion)."""
+        self.state[...] = other.state
+        self._has_last = other._has_last
+        if other._last is not None:
+            self._last, self._change = other._last.copy(), np.empty_like(other._last)
 
     def evaluate(self, theta, root, frame):
         if self._last is None:

@@ -16,8 +16,9 @@ A `GarmentModel` turns a body shape and a pose into garment vertices:
                                                      call overwrites (callers copy what they keep)
     model.reset()                                    forget frame-to-frame history (the engine's decay)
     model.clone() -> GarmentModel                    a model sharing the read-only data (topology, database,
-                                                     skin weights) whose set_shape does not touch `model`: the
-                                                     node refits a clone off the frame path and swaps it in
+                                                     skin weights) with its own frame buffers and a copy of the
+                                                     history, whose set_shape and synthesize do not touch `model`:
+                                                     the node refits a clone off the frame path and swaps it in
 
 `SkinnedGarmentModel` is linear blend skinning of a garment template (used when no database is configured),
 `BodyModel` the visible body surface under the same protocol (the node's optional body stream), and
@@ -187,10 +188,10 @@ class BodyModel(_SkinnedBase):
 
 
 class EngineGarmentModel:
-    """The AgentDress engine (`agentdress_ros.engine.Engine`) behind the protocol. `clone()` is a shallow copy of
-    the engine: Engine.set_shape builds new arrays and rebinds one state reference, so the copy's refit never
-    touches the live engine, and once swapped in the copy continues with the same frame buffers and decay history
-    (only one of the two ever synthesizes)."""
+    """The AgentDress engine (`agentdress_ros.engine.Engine`) behind the protocol. `clone()` is Engine.clone: the
+    copy has its own frame buffers and starts from the live engine's decay history, so neither its refit nor the
+    rest-pose drapes the display stages bind to (made on the worker thread while the live model runs) reach the
+    live model's frames."""
 
     kind = "database"
 
