@@ -64,14 +64,9 @@ $(WEB_STAMP): web/package.json web/package-lock.json
 
 # Two xdist workers, a test file at a time each (a module's fixtures, such as the tiny build, are made once), in the
 # order of test/conftest.py (slowest first); the 15 slowest tests are listed at the end. The project's own modules
-# are compiled to bytecode first, for the same reason as the packages (see INSTALL). The node's numba kernels are
-# compiled into their cache meanwhile, beside the test installs (warm_kernels: otherwise the first nodes, viewers
-# and test processes, started together, each compile the same kernels).
-test: $(RUNTIME_STAMP)
-	@$(BIN)/python -m agentdress_ros.ros.warm_kernels & warming=$$!; \
-	$(MAKE) --no-print-directory setup-test web && $(BIN)/python -m compileall -q agentdress_ros test; ready=$$?; \
-	wait $$warming || echo "warning: compiling the node's kernels ahead failed; the tests compile them" >&2; \
-	exit $$ready
+# are compiled to bytecode first, for the same reason as the packages (see INSTALL).
+test: setup-test $(WEB_STAMP)
+	$(BIN)/python -m compileall -q agentdress_ros test
 	$(BIN)/python -m pytest -q -rs -n 2 --dist loadfile --no-loadscope-reorder --durations=15 test
 
 # Node + demo motion + web viewer on the default configuration (prints the URL to open); Ctrl-C stops all three.

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from agentdress_ros.engine.layering import (bind_layers, bind_under, face_vertex_normals, lift_over_inner,
-                                           push_out_of_inner)
+from agentdress_ros.engine.layering import (LayerBinding, bind_layers, bind_to_vertices, bind_under,
+                                           face_vertex_normals, lift_over_inner, push_out_of_inner, track_nearest,
+                                           vertex_neighbours)
 
 from .test_coverage import grid
 
@@ -115,3 +116,31 @@ def test_the_reverse_binding_finds_the_triangle_an_inner_vertex_slid_under():
     lifted = slid.copy()
     assert lift_over_inner(lifted, outer_faces, inner, under, clearance=0.004) == 1
     assert _height_over(lifted, outer_faces, inner[bump]) == pytest.approx(0.024, abs=1e-9)
+
+
+def test_vertex_neighbours_of_a_grid_are_its_edge_neighbours():
+    vertices, faces = grid(3, 2.0)  # 3 x 3: the centre has the 4 axis neighbours and the 2 diagonal ones the
+    offsets, neighbours = vertex_neighbours(faces, len(vertices))  # split of each square adds
+    centre = neighbours[offsets[4]:offsets[5]]
+    assert sorted(centre.tolist()) == [0, 1, 3, 5, 7, 8]
+    assert offsets[-1] == len(neighbours) == 2 * 16  # 16 edges, each listed from both ends
+
+
+def test_a_vertex_binding_follows_the_inner_garment_as_it_slides():
+    """The shirt bound at rest to the trousers vertex under each of its vertices; then the trousers slide 4 cm
+    and a bump (a seam's ridge, 2 cm high) comes under the shirt: tracked, each shirt vertex is pushed out of the
+    trousers vertex now under it and clears the bump; the binding fixed at rest leaves the bump through the shirt."""
+    inner, inner_faces = grid(21, 0.4)  # 2 cm spacing
+    outer, _ = grid(21, 0.4, z=0.006)
+    binding = bind_to_vertices(outer, inner)
+    slid = inner + [0.04, 0.0, 0.0]
+    slid[np.isclose(slid[:, 0], 0.04), 2] = 0.02  # the ridge now lies under the shirt's column at x = 0.04
+    heights = {}
+    for tracked in (False, True):
+        own = LayerBinding(binding.outer, binding.triangles.copy(), binding.barycentric, binding.faces)
+        moved = outer.copy()
+        if tracked:
+            track_nearest(moved, slid, own, vertex_neighbours(inner_faces, len(inner)))
+        push_out_of_inner(moved, slid, inner_faces, own, clearance=0.004)
+        heights[tracked] = moved[np.isclose(moved[:, 0], 0.04) & (np.abs(moved[:, 1]) < 0.15), 2]
+    assert heights[False].max() < 0.02 < 0.024 - 1e-6 <= heights[True].min(), heights

@@ -25,7 +25,8 @@ import time
 import numpy as np
 
 from ..body import REFERENCE_SHAPE
-from ..engine.layering import bind_layers, bind_to_vertices, bind_under, lift_over_inner, push_out_of_inner
+from ..engine.layering import (TRACK_STEPS, LayerBinding, bind_layers, bind_to_vertices, bind_under, lift_over_inner,
+                               push_out_of_inner, track_nearest, vertex_neighbours)
 from ..engine.skin_clearance import EDGE_CLEARANCE, bind_edges_to_skin, push_off_skin
 from ..engine.subdivision import LoopSubdivision
 from ..garment.binding import face_normals, vertex_normals
@@ -159,12 +160,16 @@ class DisplayModel:
     def __init__(self, base, subdivision: LoopSubdivision | None = None, inner=None, binding=None, under=None,
                  fine=None, skin=None, skin_body=None):
         self.base, self.subdivision, self.inner, self.binding, self.under = base, subdivision, inner, binding, under
-        self.fine = fine  # the refined outer bound to the refined inner: pushed out of it again after refinement
+        # the refined outer bound to the refined inner (pushed out of it again after refinement), its inner vertices
+        # this model's own: they follow the inner garment frame by frame
+        self.fine = fine if fine is None else LayerBinding(fine.outer, fine.triangles.copy(), fine.barycentric,
+                                                           fine.faces)
         self.skin, self.skin_body = skin, skin_body
         self.name, self.kind = base.name, base.kind
         self.faces = subdivision.faces if subdivision is not None else base.faces
         self.coarse = self.refined = None
         self._fine_normals = self._out = None
+        self._tracked = False  # whether the fine binding has followed a frame yet
         self.layer_ms = self.refine_ms = self.skin_ms = 0.0  # cost of the last frame's layering, refinement, edges
         self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
         self._normals = None
@@ -186,6 +191,7 @@ class DisplayModel:
 
     def reset(self) -> None:
         self.base.reset()
+        self._tracked = False  # a cut in the motion: the next frame may lie far from this one
 
     def clone(self):
         return DisplayModel(self.base.clone(), self.subdivision)  # rewired by dress_for_display
@@ -218,6 +224,11 @@ class DisplayModel:
             # refined shirt would dip under the refined trousers in slits 4 cm wide
             if self._fine_normals is None or len(self._fine_normals) != len(fine_inner):
                 self._fine_normals = np.empty((len(fine_inner), 3), dtype=fine_inner.dtype)
+            adjacency = _cached(("adjacency", len(fine_inner)) + _topology_key(self.inner.base),
+                                lambda: vertex_neighbours(self.inner.faces, len(fine_inner)))
+            # the binding was made at rest: its first frame walks as far as the pose carried the layers apart
+            track_nearest(out, fine_inner, self.fine, adjacency, steps=TRACK_STEPS if self._tracked else 64)
+            self._tracked = True
             push_out_of_inner(out, fine_inner, self.inner.faces, self.fine, normals=self._fine_normals)
         refined = time.perf_counter()
         if self.skin is not None:

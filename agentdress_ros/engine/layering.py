@@ -26,7 +26,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 __all__ = ["CLEARANCE", "LayerBinding", "UnderBinding", "bind_layers", "bind_to_vertices", "bind_under",
-           "face_vertex_normals", "lift_over_inner", "push_out_of_inner"]
+           "face_vertex_normals", "lift_over_inner", "push_out_of_inner", "track_nearest", "vertex_neighbours"]
 
 #: Default gap kept between an outer garment and the inner one, metres.
 CLEARANCE = 0.004
@@ -37,6 +37,8 @@ UNDER_EDGE_MARGIN = 0.01
 #: Rings of triangles (sharing a corner) around its closest one at rest that an inner vertex searches each frame:
 #: three rings of a 1,200-vertex garment (3 cm edges) reach about 9 cm.
 UNDER_RINGS = 3
+#: The refined layers' vertex binding follows the inner garment by at most this many edges a frame.
+TRACK_STEPS = 4
 
 
 @dataclass(frozen=True)
@@ -173,6 +175,49 @@ def push_out_of_inner(outer, inner, inner_faces, binding: LayerBinding, clearanc
     face_vertex_normals(inner, inner_faces, normals)
     return int(_push(outer, inner, normals, binding.outer, binding.triangles, binding.barycentric,
                      outer.dtype.type(clearance)))
+
+
+def vertex_neighbours(faces, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets (W + 1,), neighbours (E,)) int64 CSR of the vertices sharing an edge with each vertex of faces
+    (G, 3)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = np.unique(np.sort(np.concatenate([edges, edges[:, ::-1]]), axis=1), axis=0)
+    pairs = np.concatenate([edges, edges[:, ::-1]])
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    offsets = np.zeros(n_vertices + 1, dtype=np.int64)
+    np.add.at(offsets, pairs[:, 0] + 1, 1)
+    return np.cumsum(offsets), np.ascontiguousarray(pairs[:, 1])
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _track(outer, inner, ids, triangles, offsets, neighbours, steps):
+    """For each bound outer vertex, walk from its inner vertex of the last frame (triangles[m, 0]) to the adjacent
+    inner vertex closest to it, while one is closer (at most `steps` moves); written to all three columns."""
+    for m in range(ids.shape[0]):
+        i = ids[m]
+        j = triangles[m, 0]
+        best = (outer[i, 0] - inner[j, 0]) ** 2 + (outer[i, 1] - inner[j, 1]) ** 2 + (outer[i, 2] - inner[j, 2]) ** 2
+        for _ in range(steps):
+            moved = False
+            for k in range(offsets[j], offsets[j + 1]):
+                n = neighbours[k]
+                d = (outer[i, 0] - inner[n, 0]) ** 2 + (outer[i, 1] - inner[n, 1]) ** 2 + (outer[i, 2] - inner[n, 2]) ** 2
+                if d < best:
+                    best, j, moved = d, n, True
+            if not moved:
+                break
+        triangles[m, 0] = triangles[m, 1] = triangles[m, 2] = j
+
+
+def track_nearest(outer, inner, binding: LayerBinding, adjacency, steps: int = TRACK_STEPS) -> None:
+    """Follow a vertex binding (bind_to_vertices, its triangles owned by the caller) as the layers slide over each
+    other: the inner vertex each bound outer vertex (V, 3) is pushed out of moves, in place, to a closer adjacent
+    vertex of the posed inner garment (W, 3) while there is one (adjacency: vertex_neighbours of the inner faces).
+    A walk, not a search: a binding fixed at rest pushed the shirt out of the trousers where they hung at rest,
+    and the trousers' front seam came through the shirt where the hips had carried it."""
+    if len(binding):
+        _track(outer, inner, binding.outer, binding.triangles, adjacency[0], adjacency[1], steps)
 
 
 @dataclass(frozen=True)
