@@ -75,6 +75,36 @@ def test_a_body_bound_again_for_a_new_shape_keeps_its_last_pose():
     assert len(meshes) == 1 and frame is None
 
 
+def test_an_agents_meshes_reach_the_client_at_one_stamp():
+    """The node publishes an agent's garments and body bones of one tick as separate topics: the client gets them
+    at the newest stamp all of them have reached (trousers of one tick under the shirt of the one before showed
+    through at the waist); a mesh that stopped publishing no longer holds the others back."""
+    scene = DisplayScene()
+    for garment in ("trousers", "tshirt"):
+        scene.set_mesh(AGENT, garment, np.zeros((3, 3), np.float32), np.array([[0, 1, 2]]))
+
+    def frame_at(stamp):
+        return np.full((3, 3), stamp, np.float32)
+
+    def sent(frame):
+        size = int.from_bytes(frame[:4], "little")
+        header = json.loads(frame[4:4 + size])
+        payload = np.frombuffer(frame[4 + size:], dtype="<f4")
+        return {m["key"].split("/")[1]: (m["stamp"], float(payload[m["offset"] // 4])) for m in header["meshes"]}
+
+    seen = {}
+    for garment in ("trousers", "tshirt"):
+        scene.set_vertices(AGENT, garment, frame_at(1.0), stamp=1.0)
+    scene.updates(seen)
+    scene.set_vertices(AGENT, "trousers", frame_at(2.0), stamp=2.0)  # the shirt of tick 2 is still on its way
+    assert scene.updates(seen)[2] is None  # nothing new at a stamp both have: the client keeps tick 1
+    scene.set_vertices(AGENT, "tshirt", frame_at(2.0), stamp=2.0)
+    assert sent(scene.updates(seen)[2]) == {"trousers": (2.0, 2.0), "tshirt": (2.0, 2.0)}
+    for stamp in (3.0, 4.0, 5.0, 6.0):  # the shirt stops: past the kept frames the trousers go on alone
+        scene.set_vertices(AGENT, "trousers", frame_at(stamp), stamp=stamp)
+    assert sent(scene.updates(seen)[2]) == {"trousers": (6.0, 6.0)}
+
+
 @pytest.fixture
 def served(tmp_path):
     """A server with one agent; on_shape records (agent, values, thread name)."""

@@ -247,6 +247,7 @@ class LookSession:
         import ssl
 
         import rclpy
+        from playwright.sync_api import TimeoutError as PageTimeout
         from playwright.sync_api import sync_playwright
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import JointState
@@ -275,7 +276,7 @@ class LookSession:
         reliable = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         self.poses = self.node.create_publisher(JointState, "joint_states", reliable)
         self.shapes = self.node.create_publisher(Float32MultiArray, "body_shape", reliable)
-        self.JointState, self.Float32MultiArray = JointState, Float32MultiArray
+        self.JointState, self.Float32MultiArray, self.PageTimeout = JointState, Float32MultiArray, PageTimeout
         self.playwright = sync_playwright().start()
         self.browser = self.playwright.chromium.launch(executable_path=self.chromium, headless=True,
                                                        args=self.BROWSER_ARGS)
@@ -332,11 +333,18 @@ class LookSession:
     def show(self, rotvecs, root, shape, timeout: float = 180.0):
         """Publish this pose (and shape) until the viewer and then the page hold its frame for every mesh."""
         if shape is not None and (self.shape is None or not np.allclose(shape, self.shape)):
-            self.shapes.publish(self.Float32MultiArray(data=[float(b) for b in shape]))
             self.shape = np.asarray(shape, dtype=np.float64)
-            self.page.wait_for_function(f"""() => Object.values(agentdress.status()).some((s) => s.shape &&
-                s.shape.every((b, i) => Math.abs(b - {json.dumps(self.shape.tolist())}[i]) < 1e-4))""",
-                                        timeout=timeout * 1000)  # the node has rebuilt for it
+            rebuilt = f"""() => Object.values(agentdress.status()).some((s) => s.shape &&
+                s.shape.every((b, i) => Math.abs(b - {json.dumps(self.shape.tolist())}[i]) < 1e-4))"""
+            deadline = time.monotonic() + timeout
+            while True:  # sent again until the node has rebuilt for it: the first may precede the node's subscription
+                self.shapes.publish(self.Float32MultiArray(data=[float(b) for b in shape]))
+                try:
+                    self.page.wait_for_function(rebuilt, timeout=3000)
+                    break
+                except self.PageTimeout:
+                    if time.monotonic() > deadline:
+                        raise
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             stamp = self._publish(rotvecs, root)

@@ -7,7 +7,7 @@ JSON padded with spaces to a multiple of 4, then the payload.
          a skinned mesh (the body: its skin and bones topics) adds "skin": K, "bones": B and, after the vertices
          (its rest), V*K uint16 bone indices (zero-padded to 4 bytes) and V*K float32 weights
   frame: {"type": "frame", "seq", "meshes": [{"key", "vertices": V | "bones": B, "offset", "stamp"}]} (stamp: the
-         frame's ROS stamp in seconds, or null);
+         frame's ROS stamp in seconds, or null; an agent's meshes at the newest stamp all of them have reached);
          at each offset the mesh's V*3 float32 vertices, or a skinned mesh's B*12 float32 bone transforms (3x4,
          row-major): the client skins the rest itself, so a 13,380-vertex body costs 1.5 kB a frame, not 160 kB
 """
@@ -36,13 +36,23 @@ def pack(header: dict, *blobs: bytes) -> bytes:
     return len(text).to_bytes(4, "little") + text + b"".join(blobs)
 
 
+#: Frames kept per mesh, so that the meshes of one agent can be sent at a stamp all of them have reached.
+IN_STEP_FRAMES = 4
+
+
 class _Mesh:
-    __slots__ = ("agent", "garment", "faces", "vertices", "frames", "generation", "stamp", "bones")
+    __slots__ = ("agent", "garment", "faces", "vertices", "frames", "generation", "stamp", "bones", "recent")
 
     def __init__(self, agent, garment, faces, vertices, generation):
         self.agent, self.garment, self.faces, self.vertices = agent, garment, faces, vertices
         self.frames, self.generation, self.stamp = 0, generation, None
         self.bones = None  # (B, 12) float32 of the last frame of a skinned mesh
+        self.recent: list[tuple] = []  # (stamp, frame number, vertices or bones) of the last few frames
+
+    def add_frame(self, data: np.ndarray, stamp) -> None:
+        self.stamp = stamp
+        self.frames += 1
+        self.recent = ([] if stamp is None else self.recent[-(IN_STEP_FRAMES - 1):] + [(stamp, self.frames, data)])
 
 
 class DisplayScene:
@@ -98,7 +108,7 @@ class DisplayScene:
                 self._generation += 1
                 mesh.generation = self._generation
                 if mesh.bones is not None and int(indices.max()) >= len(mesh.bones):
-                    mesh.bones = None  # another skeleton: its pose comes with its next frame
+                    mesh.bones, mesh.recent = None, []  # another skeleton: its pose comes with its next frame
             self.seq += 1
         self._changed()
 
@@ -111,8 +121,8 @@ class DisplayScene:
             skin = self._skins.get(key)
             if mesh is None or skin is None or len(skin[0]) != len(mesh.vertices) or int(skin[1].max()) >= len(bones):
                 return False
-            mesh.bones, mesh.stamp = bones, stamp
-            mesh.frames += 1
+            mesh.bones = bones
+            mesh.add_frame(bones, stamp)
             self.seq += 1
         self._changed()
         return True
@@ -126,8 +136,8 @@ class DisplayScene:
             mesh = self._meshes.get(key)
             if mesh is None or len(vertices) != len(mesh.vertices) or key in self._skins:
                 return False
-            mesh.vertices, mesh.stamp = vertices, stamp
-            mesh.frames += 1
+            mesh.vertices = vertices
+            mesh.add_frame(vertices, stamp)
             self.seq += 1
         self._changed()
         return True
@@ -154,6 +164,27 @@ class DisplayScene:
                         "frames": m.frames, "stamp": m.stamp, "skinned": k in self._skins}
                     for k, m in sorted(self._meshes.items())}
 
+    def _in_step(self) -> dict:
+        """{key: (stamp, frame number, data)}: for each agent whose stamped meshes (its garments, its body's bones:
+        separate topics that reach this process one by one) share a stamp among their last IN_STEP_FRAMES frames,
+        each one's frame at the newest such stamp. A client shown each mesh's newest frame drew the trousers of one
+        node tick under the shirt of the tick before, which let them through at the waist. Agents without a shared
+        stamp (a mesh that stopped, or unstamped frames) get each mesh's newest frame."""
+        by_agent: dict[str, list] = {}
+        for key, mesh in self._meshes.items():
+            if mesh.recent:
+                by_agent.setdefault(mesh.agent, []).append((key, mesh))
+        chosen = {}
+        for members in by_agent.values():
+            if len(members) < 2:
+                continue
+            shared = set.intersection(*({entry[0] for entry in mesh.recent} for _, mesh in members))
+            if shared:
+                stamp = max(shared)
+                for key, mesh in members:
+                    chosen[key] = next(entry for entry in mesh.recent if entry[0] == stamp)
+        return chosen
+
     def updates(self, seen: dict) -> tuple[list[bytes], list[str], bytes | None, list[dict]]:
         """What a client that has seen `seen` still lacks: (mesh messages, removed keys, one frame message or None,
         status messages). `seen` (the client's own dict) is updated in place."""
@@ -162,6 +193,7 @@ class DisplayScene:
         status_seen = seen.setdefault("status", {})
         meshes, frame_parts, frame_meshes, statuses = [], [], [], []
         with self._lock:
+            in_step = self._in_step()
             removed = [k for k in topology if k not in self._meshes]
             for key in removed:
                 del topology[key]
@@ -185,16 +217,13 @@ class DisplayScene:
                     meshes.append(pack(header, *blobs))
                     if skin is not None and mesh.bones is not None:
                         frames[key] = -1  # its last pose follows in this update's frame
-                if frames.get(key) != mesh.frames and (skin is None or mesh.bones is not None):
-                    frames[key] = mesh.frames
-                    if skin is not None:
-                        blob = mesh.bones.tobytes()
-                        frame_meshes.append({"key": key, "bones": len(mesh.bones), "offset": offset,
-                                             "stamp": mesh.stamp})
-                    else:
-                        blob = mesh.vertices.tobytes()
-                        frame_meshes.append({"key": key, "vertices": len(mesh.vertices), "offset": offset,
-                                             "stamp": mesh.stamp})
+                stamp, number, data = in_step.get(key) or (mesh.stamp, mesh.frames,
+                                                           mesh.bones if skin is not None else mesh.vertices)
+                if frames.get(key) != number and (skin is None or mesh.bones is not None):
+                    frames[key] = number
+                    blob = data.tobytes()
+                    frame_meshes.append({"key": key, "bones" if skin is not None else "vertices": len(data),
+                                         "offset": offset, "stamp": stamp})
                     frame_parts.append(blob)
                     offset += len(blob)
             for source, (version, status) in self._status.items():
