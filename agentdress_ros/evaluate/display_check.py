@@ -63,7 +63,8 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
             plain = BodyModel(body)  # before: every face drawn, nothing sunk
             every_face = plain.faces
             counts = {"drawn_poking": 0, "drawn_poking_at_edges": 0, "poking_all_faces": 0, "outer_inside_inner": 0,
-                      "outer_vertices": 0, "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0, "seen": 0}
+                      "outer_vertices": 0, "inner_through_outer": 0, "inner_under_outer": 0, "gaps": 0, "seen": 0,
+                      "drawn_inner_through_outer": 0}
             timing = {"engine_ms": [], "layer_ms": [], "refine_ms": [], "skin_ms": []}
             for beta in shapes:
                 model_set = build_model_set(replace(model_set.scene, beta=beta), body, model_set)
@@ -114,6 +115,9 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                     through = surface_side(trousers, shirt, outer_faces, max_gap=0.03, edge_band=0.02)
                     counts["inner_through_outer"] += int((through > 0).sum())
                     counts["inner_under_outer"] += int((through != 0).sum())
+                    # the same on the garments as drawn (refined): what the viewer sees of the trousers
+                    counts["drawn_inner_through_outer"] += int((surface_side(
+                        out["trousers"], out["tshirt"], models["tshirt"].faces, max_gap=0.03, edge_band=0.02) > 0).sum())
             n = len(frames) * len(shapes)
             report["runs"][f"subdivision={subdivision},layered={layered}"] = {
                 "frames": n,
@@ -125,6 +129,7 @@ def check(subdivisions=(0, 1), frames_step: int = 2, sweep_times=(0.0, 5.0, 10.0
                 "tshirt_vertices_inside_trousers_pct": 100.0 * counts["outer_inside_inner"] / counts["outer_vertices"],
                 "trousers_vertices_through_tshirt_pct": 100.0 * counts["inner_through_outer"]
                 / max(counts["inner_under_outer"], 1),
+                "drawn_trousers_vertices_through_tshirt_per_frame": counts["drawn_inner_through_outer"] / n,
                 "garment_vertices": {g: models[g].n_vertices for g in ("tshirt", "trousers")},
                 "body_faces_drawn": len(models["body"].faces), "body_faces": len(every_face),
                 "ms_per_garment_frame_p50": {k: float(np.median(v)) for k, v in timing.items()},

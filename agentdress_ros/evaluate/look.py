@@ -26,6 +26,7 @@ import base64
 import heapq
 import json
 import shutil
+import signal
 import sys
 import time
 from pathlib import Path
@@ -533,6 +534,9 @@ def main(argv=None) -> int:
     sweep = args.sweep if args.sweep is not None else ((5.0, 15.0, 0.0) if args.full else None)
     shapes = None if sweep is None else [tuple(float(b) for b in sweep_shape(t, 20.0)) for t in sweep]
     frames = args.frames or (20 if args.full else 10)
+    # a SIGTERM (timeout, kill) unwinds like Ctrl-C, so that the node, the viewer and Chromium are stopped too: left
+    # running, they kept publishing on their random DDS domain
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     report = check(clips, shapes, frames, VIEWS[:args.views], sheet=args.sheet,
                    log=lambda line: print(line, file=sys.stderr, flush=True))
     if not args.per_view:
