@@ -170,6 +170,7 @@ class DisplayModel:
         self.coarse = self.refined = None
         self._fine_normals = self._out = None
         self._tracked = False  # whether the fine binding has followed a frame yet
+        self._adjacency = None  # the refined inner garment's vertex neighbours (CSR), for the fine binding's walk
         self.layer_ms = self.refine_ms = self.skin_ms = 0.0  # cost of the last frame's layering, refinement, edges
         self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
         self._normals = None
@@ -224,10 +225,11 @@ class DisplayModel:
             # refined shirt would dip under the refined trousers in slits 4 cm wide
             if self._fine_normals is None or len(self._fine_normals) != len(fine_inner):
                 self._fine_normals = np.empty((len(fine_inner), 3), dtype=fine_inner.dtype)
-            adjacency = _cached(("adjacency", len(fine_inner)) + _topology_key(self.inner.base),
-                                lambda: vertex_neighbours(self.inner.faces, len(fine_inner)))
+            if self._adjacency is None:  # looked up once, not per frame (the key hashes the faces)
+                self._adjacency = _cached(("adjacency", len(fine_inner)) + _topology_key(self.inner.base),
+                                          lambda: vertex_neighbours(self.inner.faces, len(fine_inner)))
             # the binding was made at rest: its first frame walks as far as the pose carried the layers apart
-            track_nearest(out, fine_inner, self.fine, adjacency, steps=TRACK_STEPS if self._tracked else 64)
+            track_nearest(out, fine_inner, self.fine, self._adjacency, steps=TRACK_STEPS if self._tracked else 64)
             self._tracked = True
             push_out_of_inner(out, fine_inner, self.inner.faces, self.fine, normals=self._fine_normals)
         refined = time.perf_counter()

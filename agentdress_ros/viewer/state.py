@@ -217,8 +217,10 @@ class DisplayScene:
                     meshes.append(pack(header, *blobs))
                     if skin is not None and mesh.bones is not None:
                         frames[key] = -1  # its last pose follows in this update's frame
-                stamp, number, data = in_step.get(key) or (mesh.stamp, mesh.frames,
-                                                           mesh.bones if skin is not None else mesh.vertices)
+                # a mesh's recent frames are bones while it has a skin: not while that skin awaits its new topology
+                entry = in_step.get(key) if (skin is not None) == (key in self._skins) else None
+                newest = (mesh.stamp, mesh.frames, mesh.bones if skin is not None else mesh.vertices)
+                stamp, number, data = entry or newest
                 if frames.get(key) != number and (skin is None or mesh.bones is not None):
                     frames[key] = number
                     blob = data.tobytes()
