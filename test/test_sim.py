@@ -4,6 +4,7 @@ The drape tests need `newton` (pip install newton==1.8.0, the project's `build` 
 the first run also pays warp's one-time kernel compile (~30 s, cached in ~/.cache/warp).
 """
 import importlib.util
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -102,16 +103,26 @@ def test_gravity_pulls_the_cloth_down_but_it_stays_on_the_body(scene, draped):
 
 
 @needs_newton
-def test_drape_is_deterministic_on_cpu(scene, warp_kernels):
-    """Two drapes of the 1,200-vertex shirt, cut at 20 frames (in contact with the shoulders from the first one):
-    the same frames, bit for bit."""
+def test_replayed_substeps_give_the_eager_drape_bit_for_bit(scene, warp_kernels):
+    """The 1,200-vertex shirt carried by the body over a 4-frame ramp (the body rising 3 cm: moving frames), then 8
+    still frames, in contact with the shoulders throughout: the substeps replayed from warp graphs (the default) and
+    the same drape run eagerly, launch by launch, give the same vertices bit for bit - and so does a second replayed
+    drape (determinism)."""
     from agentdress_ros.sim import drape
 
     faces, rest, warm, body_vertices, body_faces = scene
-    short = DrapeSettings(max_frames=20, min_frames=20)
-    first, again = (drape(warm, faces, body_vertices, body_faces, short, rest_vertices=rest) for _ in range(2))
-    assert first.frames == again.frames == 20
-    assert np.array_equal(again.vertices, first.vertices) and not np.array_equal(first.vertices, warm)
+    path = np.stack([body_vertices + [0.0, 0.0, 0.03 * (k / 4 - 1)] for k in range(4)])
+    short = DrapeSettings(max_frames=8, min_frames=8)
+    replayed, again, eager = (drape(warm, faces, body_vertices, body_faces, settings, rest_vertices=rest,
+                                    body_path=path)
+                              for settings in (short, short, replace(short, graph=False)))
+    assert replayed.ramp_frames == 4 and replayed.frames == eager.frames == 12
+    assert np.array_equal(replayed.vertices, eager.vertices) and np.array_equal(again.vertices, replayed.vertices)
+    assert np.abs(replayed.vertices - warm).max() > 0.01  # the cloth moved with the body
+    # and the three collision pipelines shared one narrow-phase kernel, built once (sim.settings)
+    from newton._src.geometry import narrow_phase
+
+    assert narrow_phase.create_narrow_phase_kernel_gjk_mpr.cache_info().hits >= 2
 
 
 @pytest.fixture(scope="module")

@@ -114,9 +114,10 @@ def evaluate_surface_binding(binding: SurfaceBinding, vertices: np.ndarray, norm
     return base + binding.offset[:, None] * normal
 
 
-def signed_clearance(points, vertices, faces) -> np.ndarray:
-    """Distance (V,) of points to a closed surface, negative inside (sign from the closest face's normal)."""
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
+def signed_clearance(points, vertices, faces, mesh=None) -> np.ndarray:
+    """Distance (V,) of points to a closed surface, negative inside (sign from the closest face's normal); mesh: that
+    surface as a trimesh.Trimesh when the caller has one."""
+    mesh = trimesh.Trimesh(vertices, faces, process=False) if mesh is None else mesh
     closest, distance, face_ids = trimesh.proximity.closest_point(mesh, points)
     outward = ((points - closest) * mesh.face_normals[face_ids]).sum(axis=1) >= 0
     return np.where(outward, distance, -distance)

@@ -95,8 +95,10 @@ def triangle_stretch(vertices: np.ndarray, rest_vertices: np.ndarray, faces: np.
     return np.linalg.svd(deformation, compute_uv=False)
 
 
-def push_out_of_body(points, body_vertices, body_faces, clearance: float):
-    """Move the points (V, 3) that lie inside the closed body surface to `clearance` outside its surface along the closest face's normal. Returns (points (V, 3) float64, moved count).
+def push_out_of_body(points, body_vertices, body_faces, clearance: float, mesh=None):
+    """Move the points (V, 3) that lie inside the closed body surface to `clearance` outside its surface along the
+    closest face's normal. Returns (points (V, 3) float64, moved count). mesh: that surface as a trimesh.Trimesh when
+    the caller has one (its search tree, most of a query's cost, is then built once).
 
     A skinned warm start can put a few garment vertices inside the body (a swinging arm against the torso): newton
     only detects particle-shape contacts within radius + gap of the surface, so a vertex deeper than that is never
@@ -105,7 +107,7 @@ def push_out_of_body(points, body_vertices, body_faces, clearance: float):
     import trimesh
 
     points = np.array(points, dtype=np.float64, copy=True)
-    mesh = trimesh.Trimesh(body_vertices, body_faces, process=False)
+    mesh = trimesh.Trimesh(body_vertices, body_faces, process=False) if mesh is None else mesh
     closest, distance, face_ids = trimesh.proximity.closest_point(mesh, points)
     normals = mesh.face_normals[face_ids]
     inside = ((points - closest) * normals).sum(axis=1) < 0.0
@@ -129,6 +131,8 @@ def drape(garment_vertices, garment_faces, body_vertices, body_faces, settings: 
     the start, and start vertices inside it are first lifted out (`push_out_of_body`).
     Raises RuntimeError if the simulation produces non-finite positions.
     """
+    import trimesh
+
     from ..garment.inside import inside_report
 
     s = DrapeSettings() if settings is None else settings
@@ -141,8 +145,10 @@ def drape(garment_vertices, garment_faces, body_vertices, body_faces, settings: 
     pinned = np.unique(np.asarray([] if pinned is None else pinned, dtype=np.int64))
     if len(pinned) and (pinned[0] < 0 or pinned[-1] >= len(warm)):
         raise ValueError(f"pinned vertex indices must lie in 0..{len(warm) - 1}")
+    body_mesh = trimesh.Trimesh(body, body_tris, process=False)  # the pose's surface: one search tree per drape
     if path is None:
-        start_vertices, pushed_out = push_out_of_body(warm, body, body_tris, s.particle_radius + s.body_margin)
+        start_vertices, pushed_out = push_out_of_body(warm, body, body_tris, s.particle_radius + s.body_margin,
+                                                      mesh=body_mesh)
         collider = body
     else:
         start_vertices, pushed_out, collider = warm, 0, path[0]
@@ -188,7 +194,7 @@ def drape(garment_vertices, garment_faces, body_vertices, body_faces, settings: 
 
     from ..garment.binding import signed_clearance
 
-    clearance = signed_clearance(current, body, body_tris)
+    clearance = signed_clearance(current, body, body_tris, mesh=body_mesh)
     inside = inside_report(current, body, body_tris)
     stretch = triangle_stretch(current, rest, faces)
     warm_stretch = triangle_stretch(warm, rest, faces)

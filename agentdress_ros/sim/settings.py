@@ -25,7 +25,22 @@ def require_newton():
         import newton.solvers  # noqa: F401
     except ImportError as error:
         raise ImportError(f"agentdress_ros.sim needs NVIDIA newton to drape garments: {INSTALL_HINT}") from error
+    _reuse_narrow_phase_kernel()
     return wp, newton
+
+
+def _reuse_narrow_phase_kernel() -> None:
+    """Every newton.CollisionPipeline builds its GJK/MPR narrow-phase kernel anew from the same arguments: warp's
+    code generation in Python, 0.45 s of each drape's setup (a drape of 500 vertices and 20 frames costs 4-6 s). The
+    kernel depends only on those arguments (the compiled module is keyed by its source), so one built kernel per
+    argument set serves every pipeline of the process."""
+    import functools
+
+    from newton._src.geometry import narrow_phase
+
+    factory = narrow_phase.create_narrow_phase_kernel_gjk_mpr
+    if not hasattr(factory, "cache_info"):
+        narrow_phase.create_narrow_phase_kernel_gjk_mpr = functools.cache(factory)
 
 
 def membrane_lame(stretch_stiffness: float, poisson_ratio: float) -> tuple[float, float]:
@@ -69,8 +84,9 @@ class DrapeSettings:
       velocity_retention  factor applied to every particle velocity after each frame, 0.9 (1 = none). Drag speeds
                           the settling; with friction the equilibrium is path dependent, so it moves the result a
                           little (the tuning below includes it).
-      graph               on the CPU, record one frame as a warp graph (APIC capture) after the first and replay it
-                          (needs an even substep count): ~15 % less Python launch overhead, bit-identical results.
+      graph               on the CPU, record the solver's substeps as warp graphs (APIC capture) after the first frame
+                          and replay them, still or moving (needs an even substep count): bit-identical results,
+                          without Python's launch overhead.
                           Not used on CUDA (untested there: no GPU was available when this was tuned).
 
       Tuning (2k-vertex T-shirt, reference body, rest pose, against an 8 x 10 run of 300 frames stopped at a 99th
