@@ -18,11 +18,11 @@ from agentdress_ros.offline.shape_model import fit_shape_model  # noqa: E402
 from agentdress_ros.body.training_shapes import shape_scale, training_shapes  # noqa: E402
 from agentdress_ros.engine.database import read_database  # noqa: E402
 
-# A coarse garment, two anchors, five shapes, short drapes: every stage runs, in about a minute and a half (80 s
-# against 140 s with 700 vertices and 40 frames: the drapes' frames, not their vertices, set the cost).
+# A coarse garment, two anchors, five shapes, short drapes: every stage runs, in about 45 CPU-s (62 s with 20-frame
+# drapes, 140 s with 700 vertices and 40 frames: the drapes' frames, not their vertices, set the cost).
 TINY = dict(garment="tshirt", garment_vertices=500, anchors=2, shapes=5, components=4, examples=3,
             sequence_frames=2, holdout_anchors=1, procedural=["walk", "wave"],
-            drape={"max_frames": 20, "min_frames": 8})
+            drape={"max_frames": 12, "min_frames": 8})
 TINY_ARGS = ["--garment", "tshirt", "--vertices", "500", "--anchors", "2", "--shapes", "5", "--components", "4",
              "--examples", "3", "--sequence-frames", "2", "--holdout-anchors", "1", "--procedural", "walk", "wave",
              "--drape", json.dumps(TINY["drape"]), "--quiet"]
@@ -47,16 +47,16 @@ def test_tiny_database_builds_and_reads_back(tiny_build):
     assert report["drape_vertices_inside_body_max"] == 0
     assert np.isfinite(db.pca_mean).all() and np.isfinite(db.ridge).all()
     # the drapes moved the cloth off its skinned warm start: the database holds information LBS does not
-    assert report["drape_displacement_mean_mm"] > 8.0  # measured 12.2 mm
+    assert report["drape_displacement_mean_mm"] > 8.0  # measured 12.4 mm
     assert report["coverage_weighted_kmeans"] <= report["coverage_uniform"] + 1e-12
 
 
 def test_shape_model_errors_are_reported(tiny_build):
-    # Five shapes varying gender only and 20-frame drapes of 500 vertices, measured 2026-12-07: train 1.19 mm, held
-    # out 1.51 mm; bounds 50 % above (the build is deterministic: a regression moves these, noise does not).
+    # Five shapes varying gender only and 12-frame drapes of 500 vertices, measured 2026-12-07: train 1.34 mm, held
+    # out 1.92 mm; bounds 50 % above (the build is deterministic: a regression moves these, noise does not).
     out, report = tiny_build
-    assert 0.5 < report["shape_model_train_error_mm"] < 1.8
-    assert 0.5 < report["shape_model_holdout_error_mm"] < 2.3
+    assert 0.7 < report["shape_model_train_error_mm"] < 2.0
+    assert 0.9 < report["shape_model_holdout_error_mm"] < 2.9
 
 
 def test_shape_model_is_exact_on_a_quadratic_family():

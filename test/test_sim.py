@@ -149,12 +149,13 @@ def test_a_pinned_waistband_holds_trousers_up(trousers):
     assert warm[garment.pinned, 2].min() > np.percentile(warm[:, 2], 80)
     settings = DrapeSettings(max_frames=120)
     held = drape(warm, garment.faces, body_vertices, body_faces, settings, rest_vertices=rest, pinned=garment.pinned)
-    loose = drape(warm, garment.faces, body_vertices, body_faces, settings, rest_vertices=rest)
+    # the loose pair slides on for its whole budget: 10.1 cm in 40 frames, 11.3 cm in 120 (measured 2026-12-07)
+    loose = drape(warm, garment.faces, body_vertices, body_faces, replace(settings, max_frames=40), rest_vertices=rest)
     np.testing.assert_allclose(held.vertices[garment.pinned], warm[garment.pinned], atol=1e-6)  # float32 state
     drop_held = warm[:, 2].mean() - held.vertices[:, 2].mean()
     drop_loose = warm[:, 2].mean() - loose.vertices[:, 2].mean()
     assert held.converged and held.inside_count == 0
-    # measured: held 1.4 cm, loose 11.3 cm
+    # measured: held 1.4 cm (converged at frame 73), loose 10.1 cm
     assert drop_held < 0.025 and drop_loose > drop_held + 0.05, (drop_held, drop_loose)
 
 

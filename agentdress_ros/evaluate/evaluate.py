@@ -420,7 +420,7 @@ def held_out_config(test_set: str = "v1", clips=None, quick: bool = False, drape
     clips = [Path(c) for c in (clips or default_clip_paths())]
     if quick:
         config = HeldOutConfig(clips=clips[:1], poses_per_clip=1, shapes_inside=1, shapes_outside=1,
-                               sequence_frames=30, drape={"max_frames": 30, **(drape or {})})
+                               sequence_frames=30, drape={"max_frames": 20, **(drape or {})})
         if test_set == "v2":  # the same, with a short ramp and a short dynamic sequence
             config.drape["ramp_frames"] = 8
             config.dynamic_clips, config.dynamic_frames, config.dynamic_shapes = clips[:1], 4, 1
