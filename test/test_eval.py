@@ -70,12 +70,13 @@ def test_quick_eval_measures_every_row_along_the_dynamic_ground_truth(quick_eval
     (entry,) = report["temporal"]
     assert entry["frames"] == 4 and entry["truth_jitter_mm"] > 0.0
     assert [r["name"] for r in entry["rows"]] == [r["name"] for r in report["rows"]]
+    configs = {r["name"]: r["config"] for r in report["rows"]}
     for r in entry["rows"]:
         assert all(math.isfinite(r[k]) and r[k] >= 0.0 for k in ("error_mean_cm", "error_max_frame_cm", "jitter_mm"))
         # the garment follows the moving body: along these 4 frames (after a 30-frame settle) the rows measured
         # 2.4-3.8 cm, the 1-anchor row 5.6 cm (its shape models and examples from one pose), 2026-12-07; 1.5x the
-        # worst, a garment left behind scores > 10
-        assert r["error_mean_cm"] < 8.5, r
+        # worst of each, a garment left behind scores > 10
+        assert r["error_mean_cm"] < (8.5 if (configs[r["name"]] or {}).get("anchors") == 1 else 5.7), r
     assert "Along the dynamic ground truth" in (folder / "report" / "trade.md").read_text()
 
 
