@@ -73,24 +73,31 @@ def test_edge_roughness_tells_a_saw_tooth_from_a_smooth_hem():
 
 def test_pixel_counts_on_a_hand_made_view():
     """Two rows of pixels: a hole where the shown pass has background and the reference the agent, skin through
-    where a body pixel's surface point lies inside the sleeve, none where it lies in front of it."""
+    where a body pixel's surface point lies inside the sleeve seen through its cloth, none where it lies in front of
+    it, and none where the sleeve is seen end on, the skin inside it through its opening."""
     vertices, faces = tube()
     size = 4
-    matrix = np.eye(4)  # window coordinates are node coordinates here
+    matrix = np.eye(4)  # window coordinates are node coordinates here: the eye looks along +z from z = -1
     reference = np.ones((size, size), dtype=np.uint8)
     reference[:, 3] = 0
     shown = reference.copy()
     shown[0, 0] = 0  # a hole
-    depth = np.full((size, size), 0.5)  # window z 0: node z 0 ... but the points are placed by the rows below
-    # rows/cols map to x, y in [-1, 1]: pixel (1, 1) and (1, 2) centres at x, y = -0.25 / 0.25: put the sleeve there
-    scaled = vertices * np.array([4.0, 4.0, 1.0]) + np.array([0.0, 0.0, -0.25])
+    depth = np.full((size, size), 0.5)  # every pixel's surface point at node z 0
+    # rows/cols map to x, y in [-1, 1]: pixel (1, 1) and (1, 2) centres at x, y = -0.25 / 0.25: put the sleeve there,
+    # lying across the sight lines (its axis along x), so that they reach the skin inside through its cloth
+    across = (vertices - [0.0, 0.0, 0.25]) @ np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
     counts = view_counts(shown, reference, depth, matrix, ["agent/body", "agent/tshirt"],
-                         {"agent/tshirt": (scaled, faces)}, {"agent/tshirt": 2})
+                         {"agent/tshirt": (across * np.array([2.0, 4.0, 4.0]), faces)}, {"agent/tshirt": 2})
     inside = counts["masks"]["skin_through"]
     assert counts["hole"] == 1 and counts["silhouette"] == 12
     # the pixel centres (x, y) = (+-0.25, +-0.25) lie inside the 0.4 m sleeve, those at 0.75 outside
     assert inside[1:3, 1:3].all() and inside.sum() == 4, inside
     assert counts["garment_through"] == 0
+    # the same sleeve along the sight lines (axis along z, z in [-0.25, 0.25]): the eye looks in at its opening
+    along = vertices * np.array([4.0, 4.0, 1.0]) + np.array([0.0, 0.0, -0.25])
+    counts = view_counts(shown, reference, depth, matrix, ["agent/body", "agent/tshirt"],
+                         {"agent/tshirt": (along, faces)}, {"agent/tshirt": 2})
+    assert counts["skin_through"] == 0
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no chromium / chromium-browser / google-chrome on PATH (Debian: "

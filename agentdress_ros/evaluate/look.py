@@ -9,9 +9,11 @@ from views around the agent (VIEWS: four around at chest height, one from above,
 reference pass of the same frame with the body drawn whole. Per frame and view, counted in pixels:
 - hole: background in the shown pass where the reference pass has the agent;
 - skin-through: visible body pixels whose surface point (unprojected from the shown pass' depth) lies inside a
-  garment's shell with its openings capped (that frame's drawn garment, never the body mask);
+  garment's shell with its openings capped (that frame's drawn garment, never the body mask), unless the sight line
+  to it passes one of the caps: skin seen through an opening (the neck down the collar, the ankle up the hem) is
+  what cloth shows, skin seen where the cloth is closed is not;
 - garment-through-garment: pixels of a lower layer's garment (display.models.TEMPLATE_LAYERS) whose surface point
-  lies inside a higher layer's capped shell;
+  lies inside a higher layer's capped shell, with the same exception;
 each as a share of the agent's silhouette (the reference pass' non-background pixels); and per frame and garment
 the edge roughness of each open boundary as drawn: distance of its vertices from the boundary smoothed by a
 Gaussian of SIGMA along its arc length (mm; a circle of radius R reads about SIGMA^2 / 2R from the smoothing's own
@@ -94,12 +96,46 @@ def _crossings(points, vertices, faces, low, cell, cols, rows, starts, members):
     return count
 
 
+@numba.njit(cache=True, nogil=True)
+def _segments_cross(starts, ends, vertices, faces):
+    """(P,) bool: whether the segment from starts[p] to ends[p] (P, 3) crosses any triangle of faces (C, 3) over
+    vertices (V, 3) (Moller-Trumbore)."""
+    out = np.zeros(starts.shape[0], dtype=np.bool_)
+    for p in range(starts.shape[0]):
+        ox, oy, oz = starts[p, 0], starts[p, 1], starts[p, 2]
+        dx, dy, dz = ends[p, 0] - ox, ends[p, 1] - oy, ends[p, 2] - oz
+        for t in range(faces.shape[0]):
+            a, b, c = faces[t, 0], faces[t, 1], faces[t, 2]
+            ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+            e1x, e1y, e1z = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
+            e2x, e2y, e2z = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
+            hx, hy, hz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+            det = e1x * hx + e1y * hy + e1z * hz
+            if abs(det) < 1e-18:
+                continue
+            sx, sy, sz = ox - ax, oy - ay, oz - az
+            u = (sx * hx + sy * hy + sz * hz) / det
+            if u < 0.0 or u > 1.0:
+                continue
+            qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+            v = (dx * qx + dy * qy + dz * qz) / det
+            if v < 0.0 or u + v > 1.0:
+                continue
+            along = (e2x * qx + e2y * qy + e2z * qz) / det
+            if 0.0 <= along <= 1.0:
+                out[p] = True
+                break
+    return out
+
+
 class Shell:
     """A garment vertices (V, 3), faces (G, 3) with its openings capped, indexed for inside tests: `inside(points)`
-    (P,) bool - odd crossings of a vertical ray with the closed shell (points nudged 1e-7 m off exact edge hits)."""
+    (P,) bool - odd crossings of a vertical ray with the closed shell (points nudged 1e-7 m off exact edge hits);
+    `through_opening(eyes, points)` (P,) bool - whether the sight line from each eye to its point passes a cap."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, cell: float = 0.02):
         self.vertices, self.faces = capped(vertices, faces)
+        self.caps = self.faces[len(faces):]
         self.cell = cell
         self.low = self.vertices[:, :2].min(axis=0) - cell
         self.cols, self.rows = (np.ceil((self.vertices[:, :2].max(axis=0) + cell - self.low) / cell)).astype(int)
@@ -120,6 +156,13 @@ class Shell:
         crossings = _crossings(points, self.vertices, self.faces, self.low, self.cell, int(self.cols),
                                int(self.rows), self.starts, self.members)
         return crossings % 2 == 1
+
+    def through_opening(self, eyes: np.ndarray, points: np.ndarray) -> np.ndarray:
+        eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if not len(self.caps):
+            return np.zeros(len(points), dtype=bool)
+        return _segments_cross(eyes, points, self.vertices, self.caps)
 
 
 def edge_roughness(vertices: np.ndarray, loop: np.ndarray, sigma: float = SIGMA) -> tuple[np.ndarray, np.ndarray]:
@@ -185,9 +228,13 @@ def view_counts(shown: np.ndarray, reference: np.ndarray, depth: np.ndarray, mat
         if len(rows) == 0:
             return mask
         points = unproject(rows, cols, depth[rows, cols], matrix, size)
+        eyes = unproject(rows, cols, np.zeros(len(rows)), matrix, size)  # the same pixel on the near plane
         hit = np.zeros(len(rows), dtype=bool)
         for key in over:
-            hit |= shells[key].inside(points)
+            inside = shells[key].inside(points)
+            if inside.any():  # seen through one of the garment's openings (into a collar, up a hem): not through cloth
+                inside[inside] = ~shells[key].through_opening(eyes[inside], points[inside])
+            hit |= inside
         mask[rows[hit], cols[hit]] = True
         return mask
 
