@@ -103,3 +103,67 @@ def test_boundary_smoothing_removes_a_saw_tooth_keeps_a_round_rim_and_leaves_the
     assert np.abs(unsmoothed[rim, 2]).max() > 2e-3  # Loop's boundary rule alone keeps half the teeth
     with pytest.raises(ValueError, match="rest has"):
         LoopSubdivision(faces, len(flat), 1, rest=flat[:-1])
+
+
+def test_posed_boundary_smoothing_follows_the_rim_as_posed():
+    """Per frame, along the drawn rim's own arc length: a 5 mm saw-tooth on a rim whose vertices a pose bunched on
+    one side (spacing 1:4) is gone, a round rim keeps its radius, nothing beyond the first ring inside moves, and the
+    first ring moves with its boundary neighbours (float32 in place, as the display's buffers are)."""
+    from agentdress_ros.engine.subdivision import BoundaryLoops, smooth_posed_boundaries
+
+    count = 48
+    flat, faces = _tube(count=count, rings=6)
+    loops = BoundaryLoops(faces)
+    assert len(loops.starts) == 3 and sorted(np.diff(loops.starts)) == [count, count]
+    bunched = np.linspace(0.0, 1.0, count, endpoint=False) ** 2 * 2 * np.pi  # dense near angle 0, sparse near 2 pi
+    posed = flat.copy()
+    posed[:count, :2] = 0.08 * np.stack([np.cos(bunched), np.sin(bunched)], axis=1)
+    jagged = posed.copy()
+    jagged[:count, 2] += 0.005 * (-1.0) ** np.arange(count)
+    for vertices, tooth in ((posed, 0.0), (jagged, 0.005)):
+        drawn = vertices.astype(np.float32)
+        smooth_posed_boundaries(drawn, loops)
+        # the rim's height: the teeth fall from 5 mm to 0.3 mm on average; the worst, 1.0 mm, where the spacing
+        # jumps from 0.1 to 2.1 cm (as wide as the Gaussian) at the loop's seam
+        height = np.abs(drawn[:count, 2])
+        assert height.max() < (1.5e-3 if tooth else 1e-6) and height.mean() < (4e-4 if tooth else 1e-6), height
+        radius = np.linalg.norm(drawn[:count, :2], axis=1)
+        assert 0.08 * 0.98 < radius.min() <= radius.max() < 0.08 * 1.005, (radius.min(), radius.max())
+        np.testing.assert_array_equal(drawn[2 * count:-2 * count], vertices[2 * count:-2 * count].astype(np.float32))
+        ring_move = drawn[count:2 * count] - vertices[count:2 * count].astype(np.float32)
+        rim_move = drawn[:count] - vertices[:count].astype(np.float32)
+        # each first-ring vertex moves by the mean of its boundary neighbours' moves (here: i and i + 1 or i - 1)
+        neighbours = [sorted({e for f in faces if count + i in f for e in f if e < count}) for i in range(count)]
+        expected = np.array([rim_move[n].mean(axis=0) for n in neighbours])
+        np.testing.assert_allclose(ring_move, expected, atol=1e-6)
+
+
+def test_a_vertex_pushed_alone_becomes_a_smooth_bump_no_larger_than_the_push():
+    """One rim vertex of a round tube pushed 1 cm outwards (as the edge push off the skin moves single vertices):
+    its neighbours along the rim follow by the push faded with a Gaussian of 2 cm of arc (the vertex keeps its 1 cm,
+    nobody moves more), the first ring inside follows the rim, the rest stays; the tooth (roughness 5.8 mm) becomes a
+    bump of 1.6 mm."""
+    from agentdress_ros.engine.subdivision import BoundaryLoops, spread_edge_moves
+    from agentdress_ros.evaluate.look import edge_roughness
+
+    count = 48
+    before, faces = _tube(count=count, rings=6)
+    loops = BoundaryLoops(faces)
+    pushed = before.copy()
+    pushed[0, :2] *= 1.0 + 0.01 / 0.08  # vertex 0 of the bottom rim, 1 cm out
+    tooth = edge_roughness(pushed, np.arange(count))[0].max()
+    spread = pushed.astype(np.float32)
+    spread_edge_moves(spread, before, loops, sigma=0.02)
+    move = np.linalg.norm(spread - before, axis=1)
+    edge = 2 * 0.08 * np.sin(np.pi / count)  # the polygon's arc length from vertex 0 along the rim
+    arc = edge * np.minimum(np.arange(count), count - np.arange(count))
+    expected = np.where(arc <= 0.06, 0.01 * np.exp(-0.5 * (arc / 0.02) ** 2), 0.0)
+    np.testing.assert_allclose(move[:count], expected, atol=2e-6)
+    assert move.max() <= 0.01 + 1e-6
+    rim_move = (spread - before)[:count]
+    neighbours = [sorted({e for f in faces if count + i in f for e in f if e < count}) for i in range(count)]
+    follow = np.array([rim_move[n].mean(axis=0) for n in neighbours])  # the ring follows its rim neighbours
+    np.testing.assert_allclose((spread - before)[count:2 * count], follow, atol=2e-6)
+    assert move[2 * count:].max() < 1e-7  # float32 round-off: the rest stays
+    bump = edge_roughness(spread, np.arange(count))[0].max()
+    assert tooth > 5.5 and bump < 2.0, (tooth, bump)

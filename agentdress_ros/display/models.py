@@ -14,7 +14,10 @@ included when it is published) and returns them ready for display, inner layers 
 - each garment refined by `subdivision` rounds of Loop subdivision (agentdress_ros.engine.subdivision), after the
   engine's penetration handling and the layering;
 - when the body is drawn, each garment's band along its open edges pushed off the skin as posed this frame
-  (agentdress_ros.engine.skin_clearance): the drawn skin there would show through the cuffs and hems in a saw-tooth.
+  (agentdress_ros.engine.skin_clearance): the drawn skin there would show through the cuffs and hems in a saw-tooth;
+  before it, each refined garment's open edges are smoothed along their arc length as posed this frame (a pose can
+  bunch a cuff into a bump), and after it each edge vertex takes the largest of its neighbours' pushes faded along
+  the edge, so that a vertex pushed alone makes a smooth bump, not a tooth (engine.subdivision).
 Coverage and subdivision matrices are cached per topology (a shape change reuses them), layer and skin bindings per
 topology and shape.
 """
@@ -28,7 +31,7 @@ from ..body import REFERENCE_SHAPE
 from ..engine.layering import (TRACK_STEPS, LayerBinding, bind_layers, bind_to_vertices, bind_under, lift_over_inner,
                                push_out_of_inner, track_nearest, vertex_neighbours)
 from ..engine.skin_clearance import EDGE_CLEARANCE, bind_edges_to_skin, push_off_skin
-from ..engine.subdivision import LoopSubdivision
+from ..engine.subdivision import BoundaryLoops, LoopSubdivision, smooth_posed_boundaries, spread_edge_moves
 from ..garment.binding import face_normals, vertex_normals
 from ..garment.coverage import MAX_GAP, boundary_distance, cover_depth, faces_with_vertices, sloped, tuck_depth
 from ..models.garment_models import BodyModel
@@ -174,6 +177,8 @@ class DisplayModel:
         self.layer_ms = self.refine_ms = self.skin_ms = 0.0  # cost of the last frame's layering, refinement, edges
         self._pushed = np.empty((base.n_vertices, 3), dtype=np.float32)
         self._normals = None
+        self._loops = _cached(("boundary loops",) + _topology_key(base) + (len(self.faces),),
+                              lambda: BoundaryLoops(self.faces)) if subdivision is not None else None
         if under is not None:  # the reverse binding's buffers: this garment's normals and lift
             self._own_normals = np.empty((base.n_vertices, 3), dtype=np.float32)
             self._lift = np.empty(base.n_vertices, dtype=np.float32)
@@ -232,10 +237,17 @@ class DisplayModel:
             track_nearest(out, fine_inner, self.fine, self._adjacency, steps=TRACK_STEPS if self._tracked else 64)
             self._tracked = True
             push_out_of_inner(out, fine_inner, self.inner.faces, self.fine, normals=self._fine_normals)
+        if self._loops is not None:
+            # the drawn edges smoothed along their arc length as posed: a pose can bunch a cuff into a bump that the
+            # smoothing at rest cannot see
+            smooth_posed_boundaries(out, self._loops)
         refined = time.perf_counter()
         if self.skin is not None:
             transforms, _ = self.skin_body.body.pose(self.skin_body.shape, rotvecs, root_translation)
+            before = out.copy() if self._loops is not None else None
             push_off_skin(out, self.skin, transforms)
+            if before is not None:  # a vertex pushed alone would make a tooth: its neighbours along the edge follow
+                spread_edge_moves(out, before, self._loops)
         self.refined = out
         end = time.perf_counter()
         self.layer_ms, self.refine_ms, self.skin_ms = 1e3 * (middle - start), 1e3 * (refined - middle), 1e3 * (
