@@ -179,6 +179,7 @@ class DisplayModel:
         self._normals = None
         self._loops = _cached(("boundary loops",) + _topology_key(base) + (len(self.faces),),
                               lambda: BoundaryLoops(self.faces)) if subdivision is not None else None
+        self._before_push = None  # the refined frame before the edge push (the spread measures the push from it)
         if under is not None:  # the reverse binding's buffers: this garment's normals and lift
             self._own_normals = np.empty((base.n_vertices, 3), dtype=np.float32)
             self._lift = np.empty(base.n_vertices, dtype=np.float32)
@@ -244,10 +245,13 @@ class DisplayModel:
         refined = time.perf_counter()
         if self.skin is not None:
             transforms, _ = self.skin_body.body.pose(self.skin_body.shape, rotvecs, root_translation)
-            before = out.copy() if self._loops is not None else None
+            if self._loops is not None:
+                if self._before_push is None or self._before_push.shape != out.shape:
+                    self._before_push = np.empty_like(out)
+                np.copyto(self._before_push, out)
             push_off_skin(out, self.skin, transforms)
-            if before is not None:  # a vertex pushed alone would make a tooth: its neighbours along the edge follow
-                spread_edge_moves(out, before, self._loops)
+            if self._loops is not None:  # a vertex pushed alone would make a tooth: its edge neighbours follow
+                spread_edge_moves(out, self._before_push, self._loops)
         self.refined = out
         end = time.perf_counter()
         self.layer_ms, self.refine_ms, self.skin_ms = 1e3 * (middle - start), 1e3 * (refined - middle), 1e3 * (

@@ -17,7 +17,8 @@ Edges of more than two triangles, or vertices with other than two open-edge neig
 Open boundaries are smoothed first (boundary_smoothing): a template cut along a level set leaves a saw-tooth hem
 (every other boundary vertex a few millimetres off the curve), which Loop's boundary rule only halves per round. Each
 closed boundary loop is filtered by a Gaussian of `boundary_sigma` metres of arc length (at rest) along it,
-shrink-compensated (2 G - G G), so a round cuff keeps its radius. It is linear in the coarse vertices too, so it is folded into S: no cost per frame.
+shrink-compensated (2 G - G G), so a round cuff keeps its radius. It is linear in the coarse vertices too, so it is
+folded into S: no cost per frame.
 The display also smooths the drawn boundaries each frame along their arc length as posed (smooth_posed_boundaries,
 POSED_SIGMA): what a pose bunches, and what the display's per-vertex pushes leave, the rest-time weights cannot see.
 
@@ -55,20 +56,18 @@ def boundary_smoothing(faces: np.ndarray, rest: np.ndarray, sigma: float = BOUND
     2 g - G g of its loop, g the loop smoothed by a Gaussian of `sigma` metres of arc length along the loop as it
     lies in `rest` (V, 3) (the weights are fixed once, like the rest of S); each vertex of the first ring inside
     moves by `spread` times the mean move of its boundary neighbours. sigma 0: the identity."""
-    from ..garment.coverage import boundary_loops
-
     n_vertices = len(rest)
     rows, cols, vals = [np.arange(n_vertices)], [np.arange(n_vertices)], [np.ones(n_vertices)]
     on_loop = np.zeros(n_vertices, dtype=bool)
+    boundary = BoundaryLoops(faces)
     if sigma > 0:
         rest = np.asarray(rest, dtype=np.float64)
-        for loop in boundary_loops(faces):
+        for loop in boundary.each():
             lengths = np.linalg.norm(np.roll(rest[loop], -1, axis=0) - rest[loop], axis=1)
             position = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
             gap = np.abs(position[:, None] - position[None, :])
             gap = np.minimum(gap, lengths.sum() - gap)  # along the closed loop
-            # at most half the radius of the loop's circle: a round loop then keeps 98.6 % of its radius
-            width = min(sigma, lengths.sum() / (4 * np.pi))
+            width = loop_width(sigma, lengths.sum())
             # each vertex stands for half of each of its two edges (uneven spacing)
             gauss = np.where(gap <= 4 * width, np.exp(-0.5 * (gap / width) ** 2), 0.0) \
                 * (lengths + np.roll(lengths, 1))[None, :]
@@ -80,29 +79,23 @@ def boundary_smoothing(faces: np.ndarray, rest: np.ndarray, sigma: float = BOUND
     vals[0] = np.where(on_loop, 0.0, 1.0)
     matrix = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                                shape=(n_vertices, n_vertices))
-    if on_loop.any() and spread > 0:
+    if on_loop.any() and spread > 0 and len(boundary.ring):
         # the first ring inside follows its boundary neighbours' move by `spread`: moving the edge alone would tilt
         # the edge's triangles (a collar raised 2 cm over the neck lets the skin under its band out through it)
         move = matrix - sparse.identity(n_vertices, format="csr")
-        faces = np.asarray(faces, dtype=np.int64)
-        pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        pairs = np.concatenate([pairs, pairs[:, ::-1]])
-        pairs = pairs[~on_loop[pairs[:, 0]] & on_loop[pairs[:, 1]]]  # (inside vertex, its boundary neighbour)
-        pairs = np.unique(pairs, axis=0)
-        if len(pairs):
-            count = np.bincount(pairs[:, 0], minlength=n_vertices)
-            ring = sparse.csr_matrix((spread / count[pairs[:, 0]], (pairs[:, 0], pairs[:, 1])),
-                                     shape=(n_vertices, n_vertices))
-            matrix = matrix + ring @ move
+        inside, edge = boundary.ring[:, 0], boundary.loops[boundary.ring_edge]
+        ring = sparse.csr_matrix((spread / boundary.count, (inside, edge)), shape=(n_vertices, n_vertices))
+        matrix = matrix + ring @ move
     matrix.sum_duplicates()
     matrix.eliminate_zeros()
     return matrix
 
 
 class BoundaryLoops:
-    """The open boundary loops of a topology, flat: loops (N,) int64 vertex ids, loop k at starts[k]:starts[k + 1];
-    ring (R, 2) int64 (vertex inside, its boundary neighbour) pairs with count (R,) the inside vertex's number of
-    boundary neighbours."""
+    """The closed open-boundary loops of a topology, flat: loops (N,) int64 vertex ids, loop k at
+    loops[starts[k]:starts[k + 1]]; the first ring inside as (vertex inside, its boundary neighbour) pairs, sorted by
+    the inside vertex: ring (R, 2) int64, ring_edge (R,) the neighbour's position in `loops`, count (R,) the inside
+    vertex's number of boundary neighbours."""
 
     def __init__(self, faces: np.ndarray):
         from ..garment.coverage import boundary_loops
@@ -111,14 +104,40 @@ class BoundaryLoops:
         self.loops = np.concatenate(loops) if loops else np.zeros(0, dtype=np.int64)
         self.starts = np.cumsum([0] + [len(loop) for loop in loops]).astype(np.int64)
         faces = np.asarray(faces, dtype=np.int64)
-        on_loop = np.zeros(int(faces.max()) + 1 if len(faces) else 0, dtype=bool)
-        on_loop[self.loops] = True
+        position = np.full(int(faces.max()) + 1 if len(faces) else 0, -1, dtype=np.int64)
+        position[self.loops] = np.arange(len(self.loops))
         pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
         pairs = np.concatenate([pairs, pairs[:, ::-1]])
-        pairs = np.unique(pairs[~on_loop[pairs[:, 0]] & on_loop[pairs[:, 1]]], axis=0)
-        self.ring = pairs.astype(np.int64)
-        self.count = np.bincount(pairs[:, 0], minlength=len(on_loop))[pairs[:, 0]].astype(np.float64) \
-            if len(pairs) else np.zeros(0)
+        pairs = np.unique(pairs[(position[pairs[:, 0]] < 0) & (position[pairs[:, 1]] >= 0)], axis=0)
+        self.ring = pairs.astype(np.int64).reshape(-1, 2)
+        self.ring_edge = position[self.ring[:, 1]]
+        self.count = np.bincount(self.ring[:, 0])[self.ring[:, 0]].astype(np.float64) if len(pairs) else np.zeros(0)
+
+    def each(self) -> list[np.ndarray]:
+        """The loops one by one: (L,) vertex ids each."""
+        return np.split(self.loops, self.starts[1:-1])
+
+
+@numba.njit(cache=True, nogil=True)
+def loop_width(sigma, total):
+    """The smoothing width of a closed loop `total` metres long: sigma, at most half the radius of the loop's circle
+    (a round loop then keeps 98.6 % of its radius)."""
+    return min(sigma, total / (4.0 * np.pi))
+
+
+@numba.njit(cache=True, nogil=True)
+def _loop_arc(points, loop):
+    """(arc (L,) from the loop's first vertex, total length) of the closed loop of vertex ids loop (L,) over
+    points (V, 3)."""
+    n = loop.shape[0]
+    arc = np.empty(n)
+    total = 0.0
+    for i in range(n):
+        arc[i] = total
+        a, b = loop[i], loop[(i + 1) % n]
+        total += np.sqrt((points[b, 0] - points[a, 0]) ** 2 + (points[b, 1] - points[a, 1]) ** 2
+                         + (points[b, 2] - points[a, 2]) ** 2)
+    return arc, total
 
 
 @numba.njit(cache=True, nogil=True)
@@ -176,26 +195,19 @@ def _apply_sparse(starts, columns, weights, points, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _smooth_loops(vertices, loops, starts, ring, count, sigma):
+def _smooth_loops(vertices, loops, starts, ring, ring_edge, count, sigma):
     move = np.zeros((loops.shape[0], 3))
     for k in range(starts.shape[0] - 1):
         a, b = starts[k], starts[k + 1]
         n = b - a
+        arc, total = _loop_arc(vertices, loops[a:b])
+        width = loop_width(sigma, total)
+        if width <= 0.0:
+            continue
         points = np.empty((n, 3))
         for i in range(n):
             for c in range(3):
                 points[i, c] = vertices[loops[a + i], c]
-        arc = np.empty(n)
-        arc[0] = 0.0
-        for i in range(1, n):
-            arc[i] = arc[i - 1] + np.sqrt((points[i, 0] - points[i - 1, 0]) ** 2
-                                          + (points[i, 1] - points[i - 1, 1]) ** 2
-                                          + (points[i, 2] - points[i - 1, 2]) ** 2)
-        total = arc[n - 1] + np.sqrt((points[0, 0] - points[n - 1, 0]) ** 2 + (points[0, 1] - points[n - 1, 1]) ** 2
-                                     + (points[0, 2] - points[n - 1, 2]) ** 2)
-        width = min(sigma, total / (4.0 * np.pi))  # at most half a round loop's radius: it keeps its size
-        if width <= 0.0:
-            continue
         rows, columns, weights = _gauss_weights(arc, total, width)
         once = np.empty((n, 3))
         twice = np.empty((n, 3))
@@ -204,45 +216,30 @@ def _smooth_loops(vertices, loops, starts, ring, count, sigma):
         for i in range(n):
             for c in range(3):
                 move[a + i, c] = 2.0 * once[i, c] - twice[i, c] - points[i, c]  # shrink-compensated
-    position = np.full(vertices.shape[0], -1)
-    for i in range(loops.shape[0]):
-        position[loops[i]] = i
     for r in range(ring.shape[0]):  # the first ring inside follows its boundary neighbours (the edge keeps its slope)
-        inside, edge = ring[r, 0], ring[r, 1]
         for c in range(3):
-            vertices[inside, c] += move[position[edge], c] / count[r]
+            vertices[ring[r, 0], c] += move[ring_edge[r], c] / count[r]
     for i in range(loops.shape[0]):
         for c in range(3):
             vertices[loops[i], c] += move[i, c]
 
 
 @numba.njit(cache=True, nogil=True)
-def _spread_moves(vertices, before, loops, starts, ring, count, sigma):
+def _spread_moves(vertices, before, loops, starts, ring, ring_edge, count, sigma):
     n_loop = loops.shape[0]
-    moves = np.empty((n_loop, 3))  # each loop vertex's move by the push, then after spreading
+    moves = np.empty((n_loop, 3))  # each loop vertex's move by the push
     sizes = np.empty(n_loop)
     for i in range(n_loop):
-        v = loops[i]
-        size = 0.0
         for c in range(3):
-            moves[i, c] = vertices[v, c] - before[v, c]
-            size += moves[i, c] ** 2
-        sizes[i] = np.sqrt(size)
+            moves[i, c] = vertices[loops[i], c] - before[loops[i], c]
+        sizes[i] = np.sqrt(moves[i, 0] ** 2 + moves[i, 1] ** 2 + moves[i, 2] ** 2)
     chosen = np.arange(n_loop)  # whose move each loop vertex takes, and faded by how much
     fade = np.ones(n_loop)
     for k in range(starts.shape[0] - 1):
         a, b = starts[k], starts[k + 1]
         n = b - a
-        arc = np.empty(n)
-        arc[0] = 0.0
-        for i in range(1, n):
-            arc[i] = arc[i - 1] + np.sqrt(((before[loops[a + i], 0] - before[loops[a + i - 1], 0]) ** 2
-                                           + (before[loops[a + i], 1] - before[loops[a + i - 1], 1]) ** 2
-                                           + (before[loops[a + i], 2] - before[loops[a + i - 1], 2]) ** 2))
-        total = arc[n - 1] + np.sqrt(((before[loops[a], 0] - before[loops[b - 1], 0]) ** 2
-                                      + (before[loops[a], 1] - before[loops[b - 1], 1]) ** 2
-                                      + (before[loops[a], 2] - before[loops[b - 1], 2]) ** 2))
-        width = min(sigma, total / (4.0 * np.pi))
+        arc, total = _loop_arc(before, loops[a:b])
+        width = loop_width(sigma, total)
         if width <= 0.0:
             continue
         reach = min(3.0 * width, 0.5 * total)
@@ -259,13 +256,6 @@ def _spread_moves(vertices, before, loops, starts, ring, count, sigma):
                     g = np.exp(-0.5 * (gap / width) ** 2)
                     if g * sizes[a + j] > fade[a + i] * sizes[chosen[a + i]]:
                         chosen[a + i], fade[a + i] = a + j, g
-    final = np.empty((n_loop, 3))
-    for i in range(n_loop):
-        for c in range(3):
-            final[i, c] = fade[i] * moves[chosen[i], c]
-    position = np.full(vertices.shape[0], -1)
-    for i in range(n_loop):
-        position[loops[i]] = i
     # the first ring inside: the larger of its own move and the mean of its boundary neighbours' (the edge keeps its
     # slope, and no vertex moves more than the largest move); pairs are sorted by the inside vertex
     r = 0
@@ -273,10 +263,10 @@ def _spread_moves(vertices, before, loops, starts, ring, count, sigma):
         inside = ring[r, 0]
         f0 = f1 = f2 = 0.0
         while r < ring.shape[0] and ring[r, 0] == inside:
-            e = position[ring[r, 1]]
-            f0 += final[e, 0] / count[r]
-            f1 += final[e, 1] / count[r]
-            f2 += final[e, 2] / count[r]
+            e, share = ring_edge[r], fade[ring_edge[r]] / count[r]
+            f0 += share * moves[chosen[e], 0]
+            f1 += share * moves[chosen[e], 1]
+            f2 += share * moves[chosen[e], 2]
             r += 1
         own = ((vertices[inside, 0] - before[inside, 0]) ** 2 + (vertices[inside, 1] - before[inside, 1]) ** 2
                + (vertices[inside, 2] - before[inside, 2]) ** 2)
@@ -286,7 +276,7 @@ def _spread_moves(vertices, before, loops, starts, ring, count, sigma):
             vertices[inside, 2] = before[inside, 2] + f2
     for i in range(n_loop):
         for c in range(3):
-            vertices[loops[i], c] = before[loops[i], c] + final[i, c]
+            vertices[loops[i], c] = before[loops[i], c] + fade[i] * moves[chosen[i], c]
 
 
 def spread_edge_moves(vertices: np.ndarray, before: np.ndarray, loops: BoundaryLoops, sigma: float = POSED_SIGMA):
@@ -296,8 +286,8 @@ def spread_edge_moves(vertices: np.ndarray, before: np.ndarray, loops: BoundaryL
     the first ring inside the larger of its own move and the mean of its boundary neighbours'. No vertex moves less
     than the push moved it, or more than the largest move."""
     if len(loops.loops) and sigma > 0:
-        _spread_moves(vertices, np.ascontiguousarray(before, dtype=np.float64), loops.loops, loops.starts,
-                      loops.ring, loops.count, float(sigma))
+        _spread_moves(vertices, before, loops.loops, loops.starts, loops.ring, loops.ring_edge, loops.count,
+                      float(sigma))
 
 
 def smooth_posed_boundaries(vertices: np.ndarray, loops: BoundaryLoops, sigma: float = POSED_SIGMA) -> None:
@@ -305,7 +295,7 @@ def smooth_posed_boundaries(vertices: np.ndarray, loops: BoundaryLoops, sigma: f
     `sigma` metres along its arc length as posed (2 G x - G G x), the first ring of vertices inside moving by the mean
     of its boundary neighbours' moves."""
     if len(loops.loops) and sigma > 0:
-        _smooth_loops(vertices, loops.loops, loops.starts, loops.ring, loops.count, float(sigma))
+        _smooth_loops(vertices, loops.loops, loops.starts, loops.ring, loops.ring_edge, loops.count, float(sigma))
 
 
 def loop_stencils(faces: np.ndarray, n_vertices: int):

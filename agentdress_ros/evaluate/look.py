@@ -36,7 +36,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from ..garment.coverage import boundary_loops
+from ..garment.coverage import boundary_loops, ray_triangle
 
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = 512
@@ -99,29 +99,13 @@ def _crossings(points, vertices, faces, low, cell, cols, rows, starts, members):
 @numba.njit(cache=True, nogil=True)
 def _segments_cross(starts, ends, vertices, faces):
     """(P,) bool: whether the segment from starts[p] to ends[p] (P, 3) crosses any triangle of faces (C, 3) over
-    vertices (V, 3) (Moller-Trumbore)."""
+    vertices (V, 3)."""
     out = np.zeros(starts.shape[0], dtype=np.bool_)
     for p in range(starts.shape[0]):
         ox, oy, oz = starts[p, 0], starts[p, 1], starts[p, 2]
         dx, dy, dz = ends[p, 0] - ox, ends[p, 1] - oy, ends[p, 2] - oz
         for t in range(faces.shape[0]):
-            a, b, c = faces[t, 0], faces[t, 1], faces[t, 2]
-            ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
-            e1x, e1y, e1z = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
-            e2x, e2y, e2z = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
-            hx, hy, hz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-            det = e1x * hx + e1y * hy + e1z * hz
-            if abs(det) < 1e-18:
-                continue
-            sx, sy, sz = ox - ax, oy - ay, oz - az
-            u = (sx * hx + sy * hy + sz * hz) / det
-            if u < 0.0 or u > 1.0:
-                continue
-            qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
-            v = (dx * qx + dy * qy + dz * qz) / det
-            if v < 0.0 or u + v > 1.0:
-                continue
-            along = (e2x * qx + e2y * qy + e2z * qz) / det
+            along, _, _ = ray_triangle(ox, oy, oz, dx, dy, dz, vertices, faces[t, 0], faces[t, 1], faces[t, 2])
             if 0.0 <= along <= 1.0:
                 out[p] = True
                 break

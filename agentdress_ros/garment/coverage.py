@@ -161,13 +161,34 @@ def _triangles_near(points, vertices, faces, reach):
 
 
 @numba.njit(cache=True, nogil=True)
+def ray_triangle(ox, oy, oz, dx, dy, dz, vertices, a, b, c):
+    """(t, u, v): where the ray o + t d meets the triangle of vertices (V, 3) rows a, b, c, at barycentric
+    (1 - u - v, u, v); t = -inf where it misses (parallel, or outside the triangle). Moeller-Trumbore."""
+    ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+    e1x, e1y, e1z = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
+    e2x, e2y, e2z = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
+    px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if abs(det) < 1e-20:
+        return -np.inf, 0.0, 0.0
+    inverse = 1.0 / det
+    tx, ty, tz = ox - ax, oy - ay, oz - az
+    u = (tx * px + ty * py + tz * pz) * inverse
+    if u < 0.0 or u > 1.0:
+        return -np.inf, 0.0, 0.0
+    qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inverse
+    if v < 0.0 or u + v > 1.0:
+        return -np.inf, 0.0, 0.0
+    return (e2x * qx + e2y * qy + e2z * qz) * inverse, u, v
+
+
+@numba.njit(cache=True, nogil=True)
 def _rays_hit(points, directions, vertices, faces, normals, offsets, candidates, near, far, edges, edge_band, out):
     """out (P,) bool: the ray from each point (P, 3) along its unit direction (P, 3) meets, between `near` and
     `far` along it, one of its candidate triangles (CSR offsets/candidates) that faces the same way (normals
-    (G, 3)) at a point at least edge_band inside the open edges (edges (V,): boundary_distance, interpolated).
-    Moeller-Trumbore per triangle."""
+    (G, 3)) at a point at least edge_band inside the open edges (edges (V,): boundary_distance, interpolated)."""
     for p in range(points.shape[0]):
-        ox, oy, oz = points[p, 0], points[p, 1], points[p, 2]
         dx, dy, dz = directions[p, 0], directions[p, 1], directions[p, 2]
         out[p] = False
         for i in range(offsets[p], offsets[p + 1]):
@@ -175,23 +196,7 @@ def _rays_hit(points, directions, vertices, faces, normals, offsets, candidates,
             if normals[f, 0] * dx + normals[f, 1] * dy + normals[f, 2] * dz <= 0.0:
                 continue
             a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-            ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
-            e1x, e1y, e1z = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
-            e2x, e2y, e2z = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
-            px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-            det = e1x * px + e1y * py + e1z * pz
-            if abs(det) < 1e-20:
-                continue
-            inverse = 1.0 / det
-            tx, ty, tz = ox - ax, oy - ay, oz - az
-            u = (tx * px + ty * py + tz * pz) * inverse
-            if u < 0.0 or u > 1.0:
-                continue
-            qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
-            v = (dx * qx + dy * qy + dz * qz) * inverse
-            if v < 0.0 or u + v > 1.0:
-                continue
-            t = (e2x * qx + e2y * qy + e2z * qz) * inverse
+            t, u, v = ray_triangle(points[p, 0], points[p, 1], points[p, 2], dx, dy, dz, vertices, a, b, c)
             if t < near or t > far:
                 continue
             if (1.0 - u - v) * edges[a] + u * edges[b] + v * edges[c] >= edge_band:
