@@ -117,11 +117,14 @@ def crowd(tmp_path_factory, ros_domain):
 
 
 def _engine(body, beta):
-    from agentdress_ros.engine import EngineConfig, load_engine
+    """The single agent's T-shirt for this node's parameters: the engine's garment dressed for display (refined
+    once, display_subdivision's default)."""
+    from agentdress_ros.display.models import dress_for_display
+    from agentdress_ros.engine import EngineConfig
+    from agentdress_ros.models.garment_models import make_garment_model
 
-    engine = load_engine(TSHIRT, EngineConfig(pose_model="examples", decay=False), body)
-    engine.set_shape(beta)
-    return engine
+    model = make_garment_model("tshirt", TSHIRT, None, body, beta, EngineConfig(pose_model="examples", decay=False))
+    return dress_for_display({"tshirt": model}, body, subdivision=1, beta=beta)["tshirt"]
 
 
 def test_two_agents_get_their_own_correct_clouds(crowd, body):
@@ -259,7 +262,7 @@ def test_agents_are_added_and_removed_at_run_time(crowd):
     while "carol" not in client.latest_status()["crowd"]["agents_detail"] and time.monotonic() < deadline:
         client.spin(0.2)
     carol, _ = client.answer("carol", walk.rotvecs[2], walk.root_translation[2])
-    assert np.isfinite(carol).all() and carol.shape == (1200, 3)
+    assert np.isfinite(carol).all() and carol.shape == (4654, 3)  # refined for display, as the single agent
     alice, _ = client.answer("alice", walk.rotvecs[9], walk.root_translation[9])  # the others carry on
     assert client.set_parameters(agents=["alice", "bob"])[0].successful
     status = client.latest_status()

@@ -203,9 +203,18 @@ def test_agents_share_garment_data_and_hold_a_small_state(scene, body, walk):
     assert 0 < own < 5e6, own
 
 
-def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
-    from agentdress_ros.engine import EngineConfig, load_engine
+def _single_agent(body, beta, publish_body=False, subdivision=0):
+    """The single agent's models of GARMENTS on `beta` (the body too with publish_body), dressed for display."""
+    from agentdress_ros.display.models import dress_for_display
+    from agentdress_ros.models.garment_models import make_body_model, make_garment_model
 
+    models = {g.name: make_garment_model(g.name, g.database, None, body, beta, g.engine.config()) for g in GARMENTS}
+    if publish_body:
+        models["body"] = make_body_model(body, beta)
+    return dress_for_display(models, body, {}, subdivision, beta)
+
+
+def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
     shapes = {"a": BETA0, "b": (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)}
     for name, beta in shapes.items():
         _add(scene, name, beta)
@@ -216,12 +225,46 @@ def test_each_agent_gets_its_own_correct_clouds(scene, body, walk):
     scene.tick(published)
     assert set(published.frames) == {"a", "b"}
     for name, frame in ((("a", 3)), ("b", 17)):
-        engine = load_engine(DATA / "tshirt_default.h5", EngineConfig(pose_model="examples"), body)
-        engine.set_shape(shapes[name])
+        single = _single_agent(body, shapes[name])
         offset = (2.0, 0.0, 0.0) if name == "b" else (0.0, 0.0, 0.0)
-        expected = engine.synthesize(rot[frame], root[frame] + offset)
-        assert np.allclose(published.frames[name]["tshirt"], expected, atol=1e-5)
+        for garment, model in single.items():  # the trousers first: the T-shirt is layered out of them
+            expected = model.synthesize(rot[frame], root[frame] + offset)
+            assert np.allclose(published.frames[name][garment], expected, atol=1e-5)
     assert not np.allclose(published.frames["a"]["tshirt"], published.frames["b"]["tshirt"], atol=1e-2)
+
+
+def test_an_agent_is_dressed_for_display_exactly_as_the_single_agent(scene, body, walk):
+    """Layered, refined, its edges kept off its drawn body: the near tier's frames are the single agent's, bit for
+    bit, through a shape refit too (the display bindings are made again for the new shape)."""
+    beta = (0.2, 0.5, 0.5, 0.8, 0.3, 0.5)
+    agent = _add(scene, "a", beta, publish_body=True, subdivision=1)
+    single = _single_agent(body, beta, publish_body=True, subdivision=1)
+    assert list(agent.garments) == list(single) == ["trousers", "tshirt", "body"]
+    for name, model in single.items():
+        assert agent.garments[name].n_vertices == model.n_vertices > (1000 if name != "body" else 0)
+        np.testing.assert_array_equal(agent.garments[name].faces, model.faces)
+        assert agent.garments[name].skin_binding() is None or name == "body"
+    far = agent.garments["tshirt"]  # the shipped farther tiers draw without display stages (display=none)
+    assert [far.topology_at(level) for level in range(4)] == ["display", "coarse", "coarse", "coarse"]
+    assert len(far.faces_at(2)) == len(far.coarse_faces) < len(far.faces_at(0))
+    for frame in (0, 5, 10, 15):
+        rotvecs, root = walk.rotvecs[frame], walk.root_translation[frame]
+        dressed = {n: np.array(g.dress(0, rotvecs, root)) for n, g in agent.garments.items()}
+        for name, model in single.items():
+            np.testing.assert_array_equal(dressed[name], model.synthesize(rotvecs, root))
+    refit = (0.7, 0.3, 0.5, 0.4, 0.6, 0.5)
+    scene.request_shape("a", refit)
+    deadline = time.monotonic() + 60.0
+    while not (scene.idle() and agent.beta == refit) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    single = _single_agent(body, refit, publish_body=True, subdivision=1)
+    for name in agent.garments:
+        agent.garments[name].reset()
+    for frame in (20, 25):
+        rotvecs, root = walk.rotvecs[frame], walk.root_translation[frame]
+        for name, model in single.items():
+            np.testing.assert_array_equal(np.array(agent.garments[name].dress(0, rotvecs, root)),
+                                          model.synthesize(rotvecs, root))
 
 
 def test_an_agent_runs_the_garment_model_its_spec_names(scene, body, walk):
@@ -317,7 +360,7 @@ def test_a_tier_change_cross_fades_instead_of_popping(scene, walk):
     for _ in range(6):
         scene.tick(published)
         frames.append(published.frames["a"]["tshirt"])
-    far = agent.garments["tshirt"].base.skin(pose, np.zeros(3)).copy()
+    far = agent.garments["tshirt"].base.skin(pose, np.zeros(3)).copy()  # the far tier draws no display stages
     step = np.abs(far - near).max()
     assert step > 0.01  # the levels differ visibly...
     jumps = [np.abs(b - a).max() for a, b in zip([near] + frames, frames)]

@@ -170,6 +170,9 @@ class DisplayModel:
         self.skin, self.skin_body = skin, skin_body
         self.name, self.kind = base.name, base.kind
         self.faces = subdivision.faces if subdivision is not None else base.faces
+        # the unrefined faces of this garment and of the inner one (the base may draw refined faces of its own)
+        self.coarse_faces, self.inner_faces = base.faces, inner.coarse_faces if inner is not None else None
+        self._inner_key = _topology_key(inner.base) if inner is not None else None
         self.coarse = self.refined = None
         self._fine_normals = self._out = None
         self._tracked = False  # whether the fine binding has followed a frame yet
@@ -198,7 +201,11 @@ class DisplayModel:
 
     def reset(self) -> None:
         self.base.reset()
-        self._tracked = False  # a cut in the motion: the next frame may lie far from this one
+        self.forget_motion()
+
+    def forget_motion(self) -> None:
+        """A cut in the motion: the next frame may lie far from this one (the fine binding walks as far again)."""
+        self._tracked = False
 
     def clone(self):
         return DisplayModel(self.base.clone(), self.subdivision)  # rewired by dress_for_display
@@ -212,9 +219,9 @@ class DisplayModel:
             coarse = self._pushed
             if self._normals is None or len(self._normals) != len(inner):
                 self._normals = np.empty((len(inner), 3), dtype=np.float32)
-            push_out_of_inner(coarse, inner, self.inner.base.faces, self.binding, normals=self._normals)
+            push_out_of_inner(coarse, inner, self.inner_faces, self.binding, normals=self._normals)
             if self.under is not None:
-                lift_over_inner(coarse, self.base.faces, inner, self.under, normals=self._own_normals, lift=self._lift)
+                lift_over_inner(coarse, self.coarse_faces, inner, self.under, normals=self._own_normals, lift=self._lift)
         middle = time.perf_counter()
         self.coarse = coarse
         out = coarse
@@ -232,7 +239,7 @@ class DisplayModel:
             if self._fine_normals is None or len(self._fine_normals) != len(fine_inner):
                 self._fine_normals = np.empty((len(fine_inner), 3), dtype=fine_inner.dtype)
             if self._adjacency is None:  # looked up once, not per frame (the key hashes the faces)
-                self._adjacency = _cached(("adjacency", len(fine_inner)) + _topology_key(self.inner.base),
+                self._adjacency = _cached(("adjacency", len(fine_inner)) + self._inner_key,
                                           lambda: vertex_neighbours(self.inner.faces, len(fine_inner)))
             # the binding was made at rest: its first frame walks as far as the pose carried the layers apart
             track_nearest(out, fine_inner, self.fine, self._adjacency, steps=TRACK_STEPS if self._tracked else 64)

@@ -191,7 +191,7 @@ def _run_cpu(count: int, ticks: int = 60, engine: tuple = tuple(default_engine()
     from ..body import AnnyBody
     from ..ros.crowd_demo import CrowdPlayer
     from ..ros.messages import SerializedCloud
-    from ..ros.params import validate
+    from ..ros.params import PARAMETERS, validate
     from ..scene import AgentSpec, GarmentSpec, Scene, SceneConfig
 
     body = AnnyBody()
@@ -201,13 +201,15 @@ def _run_cpu(count: int, ticks: int = 60, engine: tuple = tuple(default_engine()
     player = CrowdPlayer(count, 30.0)
     try:
         for i, track in enumerate(player.tracks):
-            scene.install(scene.build_agent(AgentSpec(f"agent_{i:03d}", garments, tuple(track.beta))))
+            # dressed for display as the node's default configuration does it (refined, layered)
+            scene.install(scene.build_agent(AgentSpec(f"agent_{i:03d}", garments, tuple(track.beta),
+                                                      subdivision=PARAMETERS["display_subdivision"].default)))
         clouds = {}
 
         def pack(agent, frames, stamp_ns):  # as the node does: into the cloud's serialized bytes
             for g, vertices in frames.items():
                 cloud = clouds.get((agent.name, g))
-                if cloud is None:
+                if cloud is None or cloud.n_vertices != len(vertices):  # a tier of another topology
                     cloud = clouds[(agent.name, g)] = SerializedCloud(agent.spec.frame_id, len(vertices))
                 cloud.set(vertices, stamp_ns)
 

@@ -45,7 +45,6 @@ from ..scene import AgentSpec, LodPolicy, Scene, SceneConfig, Viewer, parse_tier
 from ..motion.joint_names import JOINT_NAMES
 from .inputs import InputRejected, PoseInput, check_shape_values, stamp_to_ns
 from .inside_check import InsideChecker
-from ..models.garment_models import skin_binding
 from .messages import JointStateReader, SerializedBones, SerializedCloud, make_mesh, make_skin, stamp_from_ns
 from .params import PARAMETERS, ParameterError, garment_specs, number
 
@@ -139,6 +138,7 @@ class AgentTopics:
     bones: dict = field(default_factory=dict)
     installed: object = None
     skin_generation: int | None = None
+    drawn: dict = field(default_factory=dict)  # garment -> the topology its mesh publisher sent last
     marker: object = None
 
 
@@ -214,7 +214,8 @@ class Crowd:
         garments = garment_specs(config)
         beta = tuple(float(b) for b in check_shape_values(config["shape"]).beta)
         return AgentSpec(name, garments, beta, config["frame_id"], config.get("origin", (0.0, 0.0, 0.0)),
-                         config.get("extra_cost_ms", 0.0), config["publish_body"], self.config["skinned_fallback"])
+                         config.get("extra_cost_ms", 0.0), config["publish_body"], self.config["skinned_fallback"],
+                         self.config["display_subdivision"], tuple(self.config["garment_layers"].items()))
 
     def set_agents(self, names, initial: bool = False):
         """Make the agents `names`: build new ones (at startup now, later on the worker), drop the others."""
@@ -253,9 +254,14 @@ class Crowd:
         self.entities[name] = AgentTopics(subs, [sub.handle for sub in subs])
 
     def _prepare(self, agent):
-        """Worker thread: topology messages of a built agent."""
-        self.topology[agent.name] = {g: make_mesh(garment.rest_frame(), garment.faces)
-                                     for g, garment in agent.garments.items()}
+        """Worker thread: topology messages of a built agent, per garment one for each topology its tiers draw
+        (lod.Tier.display: the display's, refined, or the garment's own), inner layers first."""
+        topology = {}
+        for g, garment in agent.garments.items():
+            levels = {garment.topology_at(level): level for level in reversed(range(len(self.scene.config.lod.tiers)))}
+            topology[g] = {kind: make_mesh(garment.rest_frame(level), garment.faces_at(level))
+                           for kind, level in levels.items()}
+        self.topology[agent.name] = topology
 
     def _install(self, agent):
         """Executor thread: publishers of a new (or rebuilt) agent, its topology sent."""
@@ -267,7 +273,7 @@ class Crowd:
             node.destroy_publisher(entity.points.pop(g))
             node.destroy_publisher(entity.mesh.pop(g))
             self.clouds.pop((agent.name, g), None)
-        for g in [g for g in entity.skin if g not in agent.garments or skin_binding(agent.garments[g].base) is None]:
+        for g in [g for g in entity.skin if g not in agent.garments or agent.garments[g].skin_binding() is None]:
             node.destroy_publisher(entity.skin.pop(g))
             node.destroy_publisher(entity.bones.pop(g))
             self.bones.pop((agent.name, g), None)
@@ -277,16 +283,25 @@ class Crowd:
                                                             node.qos("points"), event_callbacks=QUIET_PUBLISHER)
                 entity.mesh[g] = node.create_publisher(Mesh, f"~/{agent.name}/{g}/mesh", node.topology_qos,
                                                           event_callbacks=QUIET_PUBLISHER)
-            mesh = self.topology.get(agent.name, {}).get(g)
-            if mesh is not None:
-                entity.mesh[g].publish(mesh)
-            if g not in entity.skin and skin_binding(agent.garments[g].base) is not None:
+            entity.drawn.pop(g, None)
+            self._send_topology(agent, entity, g, agent.garments[g].topology_at(agent.level or 0))
+            if g not in entity.skin and agent.garments[g].skin_binding() is not None:
                 entity.skin[g] = node.create_publisher(Float32MultiArray, f"~/{agent.name}/{g}/skin",
                                                           node.topology_qos, event_callbacks=QUIET_PUBLISHER)
                 entity.bones[g] = node.create_publisher(PoseArray, f"~/{agent.name}/{g}/bones", node.qos("points"),
                                                            event_callbacks=QUIET_PUBLISHER)
         entity.installed = agent
         entity.skin_generation = None  # sent with the agent's next frame
+
+    def _send_topology(self, agent, entity: "AgentTopics", g: str, kind: str):
+        """The garment's topology message of `kind` (Crowd._prepare), unless it is the one sent last: a tier
+        change between a displayed and a plain tier changes the faces the clouds follow."""
+        if entity.drawn.get(g) == kind:
+            return
+        mesh = self.topology.get(agent.name, {}).get(g, {}).get(kind)
+        if mesh is not None:
+            entity.mesh[g].publish(mesh)
+            entity.drawn[g] = kind
 
     def _destroy(self, name: str):
         entity = self.entities.pop(name, None)
@@ -479,6 +494,8 @@ class Crowd:
             if not np.isfinite(vertices).all():  # never emit garbage: keep the last good cloud
                 self.node.stats.counts[f"non_finite_output:{agent.name}/{g}"] += 1
                 continue
+            garment = agent.garments[g]
+            self._send_topology(agent, entity, g, garment.topology_at(garment.level))
             key = (agent.name, g)
             cloud = self.clouds.get(key)
             if cloud is None or cloud.frame_id != frame_id or cloud.n_vertices != len(vertices):

@@ -117,8 +117,11 @@ class AgentGarment:
     """
 
     def __init__(self, shared, tiers, fade_frames: int = 6):
-        self.name, self.faces, self.kind = shared.name, shared.faces, shared.kind
-        self.n_vertices = shared.n_vertices
+        self.shared, self.name, self.kind = shared, shared.name, shared.kind
+        self.coarse_faces, self.coarse_vertices = shared.faces, shared.n_vertices
+        self.display = None  # display.models.DisplayModel over this garment's levels (set_display), or None
+        self._drawn = [tier.display == "full" for tier in tiers]  # per level: through `display` (when set)
+        self.next_level = 0  # the level `synthesize` dresses (the display model calls it)
         self.fade_frames = int(fade_frames)
         self.clamped = False
         engine = getattr(shared, "engine", None)
@@ -141,7 +144,7 @@ class AgentGarment:
             self.base = shared.clone()
             self._engines = []
             self._levels = [("model", self.base)] * len(tiers)
-        self._out = np.zeros((self.n_vertices, 3), dtype=np.float32)
+        self._out = np.zeros((self.coarse_vertices, 3), dtype=np.float32)
         self._old = np.zeros_like(self._out)
         self.bones_only = False  # set by the owner while nobody takes this template's vertices, only its bones
         self.level: int | None = None
@@ -151,6 +154,57 @@ class AgentGarment:
     @property
     def fading(self) -> bool:
         return self._fade_left > 0
+
+    def set_display(self, display) -> None:
+        """Dress the levels whose tier draws the display (`display=full`) through `display` (a
+        display.models.DisplayModel whose base is this garment: the single agent's layering, refinement and edge
+        stages on each frame of this garment's level), or none (None). Swapped by reference: a refit's new bindings
+        go live at once."""
+        self.display = display
+
+    def display_at(self, level: int):
+        """The display model that level `level` is drawn through, or None (the level's own frames)."""
+        return self.display if self.display is not None and self._drawn[level] else None
+
+    def faces_at(self, level: int) -> np.ndarray:
+        """(F, 3) faces of the frames drawn at `level`."""
+        display = self.display_at(level)
+        return display.faces if display is not None else self.coarse_faces
+
+    def topology_at(self, level: int) -> str:
+        """Which topology `level` draws: "display" (the display model's) or "coarse" (the garment's own)."""
+        return "display" if self.display_at(level) is not None else "coarse"
+
+    @property
+    def faces(self) -> np.ndarray:
+        """Faces of the frame dressed last (of the first level before any)."""
+        return self.faces_at(self.level or 0)
+
+    @property
+    def n_vertices(self) -> int:
+        display = self.display_at(self.level or 0)
+        return display.n_vertices if display is not None else self.coarse_vertices
+
+    def fitted_model(self):
+        """A model under the garment protocol fitted to this garment's current shape, with frame buffers of its own
+        (what the display bindings are made from, off the frame path): the shared model with this garment's engine
+        cloned, or its skinned model cloned."""
+        if not self._engines:
+            return self.base.clone()
+        twin = copy.copy(self.shared)
+        twin.engine = self.base.clone()
+        return twin
+
+    def skin_binding(self):
+        """(rest, indices, weights) that reproduce this garment's frames by LBS (a display client skins them from
+        bones), or None: an engine's frames, or a display that changes the LBS frame (refinement, layering)."""
+        from ..models.garment_models import skin_binding
+
+        return skin_binding(self.base) if self.display is None and not self._engines else None
+
+    def synthesize(self, rotvecs, root) -> np.ndarray | None:
+        """The garment protocol for the display model: this garment at level `next_level`."""
+        return self._dress_level(self.next_level, rotvecs, root)
 
     def set_shape(self, beta) -> bool:
         if self._engines:
@@ -194,6 +248,15 @@ class AgentGarment:
         return self._levels[a] == self._levels[b]
 
     def dress(self, level: int, rotvecs, root) -> np.ndarray | None:
+        """The frame drawn at `level`: the level's garment (faded across a level change), through the display
+        stages when there are any."""
+        display = self.display_at(level)
+        if display is None:
+            return self._dress_level(level, rotvecs, root)
+        self.next_level = level
+        return display.synthesize(rotvecs, root)
+
+    def _dress_level(self, level: int, rotvecs, root) -> np.ndarray | None:
         if self.bones_only and not self._engines:  # every tier is the same LBS model: nothing to fade
             self.level = level
             self.base.pose_bones(rotvecs, root)
@@ -217,12 +280,17 @@ class AgentGarment:
             np.copyto(self._out, new, casting="unsafe")
         return self._out
 
-    def rest_frame(self) -> np.ndarray:
+    def rest_frame(self, level: int = 0) -> np.ndarray:
         """(V, 3) float32 copy of the garment at the rest pose on the current shape (for the topology message);
         leaves no decay history behind. Call before the agent goes live (it uses the frame buffers)."""
         zeros, root = np.zeros((NUM_BONES, 3)), np.zeros(3)
-        frame = self.base.skin(zeros, root) if self._engines else self.base.synthesize(zeros, root)
-        frame = np.array(frame, dtype=np.float32)
+        if self.display_at(level) is not None:  # the drawn topology, as the single agent's topology message
+            dressed = self.level
+            frame = np.array(self.dress(level, zeros, root), dtype=np.float32)
+            self.level = dressed  # not a level change: no cross-fade from it
+        else:
+            frame = self.base.skin(zeros, root) if self._engines else self.base.synthesize(zeros, root)
+            frame = np.array(frame, dtype=np.float32)
         self.reset()
         return frame
 
@@ -231,3 +299,5 @@ class AgentGarment:
         for engine in self._engines:
             engine.reset()
         self._fade_left = 0
+        if self.display is not None:
+            self.display.forget_motion()

@@ -9,12 +9,13 @@ A tier is one line of text, so a list of them is a plain ROS string-array parame
                                                          projection, the cheaper pose model, under 8 m
     "far 20 skinned"                                     the garment fitted to the body and skinned, under 20 m
     "distant inf skinned every=6"                        beyond: dressed every sixth tick (15 Hz at 90 Hz)
+    "far 20 skinned display=none"                        drawn without the display stages (DISPLAY_MODES)
 
 `<name> <max distance in m | inf> <synthesis | skinned> [key=value ...]`: keys are the engine's per-frame knobs
 (engine.config.PER_FRAME_KNOBS, read by EngineKnobs.parse like the node's `engine` parameter: neighbors,
 penetration, projection (0 only: off), decay, damping, power, pose_model (where neither the agent's nor the tier's
-folds anchor residuals; kept otherwise)) for synthesis tiers, and `every=n` for any tier. Tiers are ordered by
-distance; the last one must reach `inf`.
+folds anchor residuals; kept otherwise)) for synthesis tiers, and `every=n` and `display=full|none` for any tier.
+Tiers are ordered by distance; the last one must reach `inf`.
 """
 from __future__ import annotations
 
@@ -28,6 +29,9 @@ from ..engine.config import PER_FRAME_KNOBS, EngineKnobs
 __all__ = ["DEFAULT_TIERS", "LodPolicy", "Tier", "Viewer", "parse_tier", "parse_tiers", "quaternion_forward"]
 
 TIER_KINDS = ("synthesis", "skinned")
+#: What a tier draws: "full" the single agent's display stages (layering, refinement, edges off the drawn body;
+#: display.models), "none" each garment's own frames on its own (coarse) topology, for a fraction of the cost.
+DISPLAY_MODES = ("full", "none")
 
 
 @dataclass(frozen=True)
@@ -37,17 +41,19 @@ class Tier:
     kind: str = "synthesis"  # "synthesis" (the engine) | "skinned" (the fitted garment, skinned)
     engine: EngineKnobs = EngineKnobs()  # engine fork overrides of a synthesis tier
     every: int = 1  # dress on every n-th tick only (a lower pose rate for far agents)
+    display: str = "full"  # "full": the single agent's display stages; "none": the garment's own frames
 
     def text(self) -> str:
         extra = self.engine.words()
         extra += [f"every={self.every}"] if self.every != 1 else []
+        extra += [f"display={self.display}"] if self.display != "full" else []
         return " ".join([self.name, "inf" if math.isinf(self.max_distance) else f"{self.max_distance:g}",
                          self.kind] + extra)
 
 
 DEFAULT_TIER_TEXT = ("near 3 synthesis",
-                     "mid 8 synthesis neighbors=2 penetration=false projection=0 pose_model=examples",
-                     "far 20 skinned", "distant inf skinned every=6")
+                     "mid 8 synthesis neighbors=2 penetration=false projection=0 pose_model=examples display=none",
+                     "far 20 skinned display=none", "distant inf skinned every=6 display=none")
 
 
 def parse_tier(text: str) -> Tier:
@@ -65,12 +71,16 @@ def parse_tier(text: str) -> Tier:
             raise ValueError(f"max distance must be > 0, got {distance}")
         if kind not in TIER_KINDS:
             raise ValueError(f"kind must be one of {', '.join(TIER_KINDS)}, got {kind!r}")
-        knobs, every = [], 1
+        knobs, every, display = [], 1, "full"
         for item in extra:
             key, sep, value = item.partition("=")
             if not sep or not value:
                 raise ValueError(f"{item!r} must look like key=value")
-            if key == "every":
+            if key == "display":
+                if value not in DISPLAY_MODES:
+                    raise ValueError(f"display must be one of {', '.join(DISPLAY_MODES)}, got {value!r}")
+                display = value
+            elif key == "every":
                 try:
                     every = int(value)
                 except ValueError:
@@ -82,8 +92,8 @@ def parse_tier(text: str) -> Tier:
                     raise ValueError(f"{key} applies to synthesis tiers only")
                 knobs.append(item)
             else:
-                raise ValueError(f"unknown key {key!r}; one of every, {', '.join(PER_FRAME_KNOBS)}")
-        return Tier(name, max_distance, kind, EngineKnobs.parse(knobs, per_frame=True), every)
+                raise ValueError(f"unknown key {key!r}; one of every, display, {', '.join(PER_FRAME_KNOBS)}")
+        return Tier(name, max_distance, kind, EngineKnobs.parse(knobs, per_frame=True), every, display)
     except ValueError as error:
         raise ValueError(f"tier {text!r}: {error}") from None
 

@@ -59,6 +59,8 @@ class AgentSpec:
     extra_cost_ms: float = 0.0
     publish_body: bool = False
     skinned_fallback: bool = False
+    subdivision: int = 0  # rounds of Loop refinement of each garment for display (display.models), every tier
+    layers: tuple = ()  # ((garment, layer), ...) overriding display.models.TEMPLATE_LAYERS
 
 
 @dataclass(frozen=True)
@@ -230,12 +232,35 @@ class Scene:
                 shared, used[g.name] = self._shared(g, spec.skinned_fallback)
             garment = garments[g.name] = AgentGarment(shared, tiers, 0 if g.name == "body" else self.config.fade_frames)
             clamped |= self.library.fitted(used[g.name], spec.beta, garment)
+        garments = {name: garments[name] for name in self._dress_for_display(spec, garments, spec.beta)}
         agent = Agent(spec, garments, self.pose_factory(), 0, clamped)
         agent.specs = used
         agent.beta = tuple(float(b) for b in spec.beta)
         with self._cond:
             agent.slot, self._slots = self._slots, self._slots + 1
         return agent
+
+    def _dress_for_display(self, spec: AgentSpec, garments: dict, beta) -> list:
+        """Give each garment of `garments` {name: AgentGarment} the single agent's display stages
+        (display.models.dress_for_display: layering, refinement, the edges kept off the drawn body), their bindings
+        made between models fitted to `beta`, each display model dressing its garment's level. Returns the names
+        in drawing order: inner layers first, the body last."""
+        from ..display.models import DisplayModel, dress_for_display
+
+        if not any(tier.display == "full" for tier in self.config.lod.tiers):
+            return list(garments)
+        fitted = {name: garment.fitted_model() if name != "body" else garment.base
+                  for name, garment in garments.items()}
+        display = dress_for_display(fitted, self.body, dict(spec.layers), spec.subdivision, beta)
+        for name, model in display.items():
+            if name == "body":
+                continue
+            if isinstance(model, DisplayModel):
+                model.base = garments[name]
+                garments[name].set_display(model)
+            else:
+                garments[name].set_display(None)
+        return list(display)
 
     def _shared(self, spec: GarmentSpec, fallback: bool):
         """(the library's model of `spec`, the spec it was made from): the skinned template's when the database
@@ -306,6 +331,7 @@ class Scene:
                     if agent is not None and agent.beta != arg:  # a repeated shape costs nothing
                         agent.clamped = any([self.library.fitted(agent.specs[n], arg, g)
                                              for n, g in agent.garments.items()])
+                        self._dress_for_display(agent.spec, agent.garments, arg)  # bindings of the new shape
                         agent.beta = arg
                         agent.shape_generation += 1
                         agent.dirty = True
