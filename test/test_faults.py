@@ -1,14 +1,14 @@
 """Faults the node meets in real ROS graphs, each injected where it happens; the node must go on and say so.
 
-Stamps that jump (looped bag, far-future stamp, clock reset); exceptions in the tick (model install, cloud packing,
-publishing), the status timer, the model worker's callbacks and the marker thread; non-finite synthesis that a
-fastmath kernel would let through; clouds that disagree with the published mesh after a level-of-detail change
-that a shape change overtakes; parameters left showing a value that failed to build; floods of unknown joint
-names; bad requests to the viewer.
+Stamps that jump (looped bag, far-future stamp, clock reset); exceptions in the tick (an agent's install, cloud packing,
+publishing), the status timer, the scene worker's builds and callbacks and the marker thread; non-finite synthesis that
+a fastmath kernel would let through; clouds that disagree with the published mesh after a level-of-detail change that a
+shape change overtakes; parameters left showing a value that failed to build; floods of unknown joint names; bad
+requests to the viewer.
 
 Where a topic is involved the node runs in a child process and this process talks to it over DDS. Exceptions are
-injected in the child by wrapping the real function at that place (FAULTY_NODE): it raises on chosen calls and
-otherwise runs the real code.
+injected in the child by wrapping the real function at that place (FAULTY_NODE): it raises on chosen calls and otherwise
+runs the real code.
 """
 from __future__ import annotations
 
@@ -17,7 +17,6 @@ import json
 import math
 import socket
 import sys
-import threading
 import time
 from contextlib import contextmanager
 
@@ -26,7 +25,6 @@ import pytest
 
 from agentdress_ros.motion.joint_names import JOINT_NAMES
 from agentdress_ros.ros.inputs import MAX_UNKNOWN_NAMES, InputRejected, PoseInput
-from agentdress_ros.ros.runtime import GarmentSpec, ModelWorker, SceneSpec, build_model_set
 
 START_SHAPE = (0.5, 0.6667, 0.5, 0.5, 0.5, 0.5)  # config/agentdress.yaml
 SECOND = 1_000_000_000
@@ -122,11 +120,7 @@ def test_non_finite_synthesis_is_caught_despite_fastmath(synthetic_db, body, pen
     assert np.isfinite(moved).all() and np.abs(moved - good).max() > 1e-3 and engine.bad_frames == 1
 
 
-# ----------------------------------------------------------------------------------- model worker (no ROS)
-
-
-def _scene(vertices=300, beta=START_SHAPE, database=None) -> SceneSpec:
-    return SceneSpec((GarmentSpec("tshirt", vertices, database),), False, tuple(beta))
+# ----------------------------------------------------------------------------------- scene worker (no ROS)
 
 
 def _wait(predicate, timeout: float, what: str):
@@ -136,79 +130,42 @@ def _wait(predicate, timeout: float, what: str):
         time.sleep(0.02)
 
 
-@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")  # the thread killed on purpose
-def test_model_worker_survives_failing_callbacks_and_a_dead_thread(body, tmp_path):
-    built = []
+def test_scene_worker_survives_failing_builds_and_callbacks(body, tmp_path):
+    """A build that raises (a missing database) or whose prepare callback raises is reported with its spec and the
+    running agent stays; the worker goes on building and refitting."""
+    from agentdress_ros.scene import AgentSpec, Scene, SceneConfig, GarmentSpec
 
-    def on_built(model_set, seconds):
-        built.append(model_set)
-        raise RuntimeError("observer broke")
+    calls = []
 
-    def on_error(message):
-        raise RuntimeError("error observer broke")
+    def prepare(agent):
+        calls.append(agent.spec)
+        if len(calls) == 2:
+            raise RuntimeError("observer broke")
 
-    worker = ModelWorker(body, build_model_set(_scene(), body), on_error=on_error, on_built=on_built)
+    scene = Scene(body, SceneConfig(), prepare=prepare)
     try:
+        scene.request_agent(AgentSpec("a", (GarmentSpec("tshirt", 300),), START_SHAPE))
+        _wait(lambda: scene.idle() and scene.tick().dressed, 60.0, "the first build")
+        running = scene.agents["a"]
+        missing = AgentSpec("a", (GarmentSpec("tshirt", 300, str(tmp_path / "missing.h5")),), START_SHAPE)
+        scene.request_agent(missing)
+        _wait(scene.idle, 30.0, "the failing build")
+        scene.request_agent(AgentSpec("a", (GarmentSpec("tshirt", 400),), START_SHAPE))
+        _wait(scene.idle, 60.0, "the build whose callback raises")
+        failures = scene.take_failures()
+        assert [(name, spec) for name, spec, _ in failures] == [("a", missing), ("a", calls[1])]
+        assert "missing.h5" in failures[0][2] and "observer broke" in failures[1][2]
+        scene.tick()
+        assert scene.agents["a"] is running  # neither went live
         heavier = (0.5, 0.6667, 0.5, 0.9, 0.5, 0.5)
-        worker.request(beta=heavier)
-        _wait(lambda: built, 30.0, "the first refit")
-        assert worker.take_ready().scene.beta == heavier
-        missing = tmp_path / "missing.h5"
-        worker.request(garments=(GarmentSpec("tshirt", 300, str(missing)),))
-        _wait(lambda: worker.idle(), 30.0, "the failing build")
-        scene, message = worker.take_failure()
-        assert scene.garments[0].database == str(missing) and str(missing) in message
-        worker.request(beta=START_SHAPE)  # the worker still builds after two callbacks raised
-        _wait(lambda: len(built) == 2, 30.0, "a refit after the failures")
-        assert worker.take_ready().scene.garments[0].database is None
-        errors = []
-        _wait(lambda: errors.extend(worker.take_errors()) or len(errors) >= 3, 10.0, "the callback errors")
-        assert sum("observer broke" in e for e in errors) == 3, errors
-
-        # Something the loop does not catch ends the thread: ensure_running starts a new one.
-        def fatal(model_set, previous):
-            worker.prepare = lambda *_: None
-            raise SystemExit("thread killed")
-
-        worker.prepare = fatal
-        worker.request(beta=heavier)
-        _wait(lambda: not worker._thread.is_alive(), 30.0, "the worker thread to die")
-        assert worker.ensure_running() and worker.restarts == 1 and not worker.ensure_running()
-        worker.request(beta=(0.5, 0.6667, 0.5, 0.8, 0.5, 0.5))
-        _wait(lambda: len(built) == 3, 30.0, "a refit on the restarted thread")
+        scene.request_shape("a", heavier)
+        _wait(lambda: scene.idle() and running.beta == heavier, 30.0, "a refit after the failures")
+        scene.request_agent(AgentSpec("a", (GarmentSpec("tshirt", 500),), heavier))
+        _wait(scene.idle, 60.0, "a build after the failures")
+        scene.tick()
+        assert scene.agents["a"] is not running and scene.agents["a"].garments["tshirt"].n_vertices >= 450
     finally:
-        worker.stop()
-
-
-def test_a_shape_change_during_a_new_level_of_detail_keeps_it_and_its_topology(body):
-    """The shape arrives while the new level of detail builds; its refit overtakes that set before anything took
-    it. The handed-over set must have the new level of detail, the new shape and the new mesh."""
-    built, building, release = [], threading.Event(), threading.Event()
-
-    def prepare(model_set, previous):  # like the node's: a topology message per model that is new
-        new = {n: f"mesh of {model_set.specs[n]}" for n in model_set.models
-               if previous is None or previous.specs.get(n) != model_set.specs[n]}
-        model_set.topology.update(new)
-        if new:
-            building.set()
-            release.wait(30.0)
-
-    worker = ModelWorker(body, build_model_set(_scene(300), body), on_built=lambda s, _: built.append(s),
-                         prepare=prepare)
-    try:
-        worker.request(garments=(GarmentSpec("tshirt", 1300),))
-        assert building.wait(60.0), "the new level of detail never built"
-        heavier = (0.5, 0.6667, 0.5, 0.8, 0.5, 0.5)
-        worker.request(beta=heavier)
-        release.set()
-        _wait(lambda: len(built) == 2, 30.0, "the refit")
-        ready = worker.take_ready()
-        assert ready is built[1] and ready.scene.beta == heavier
-        assert ready.models["tshirt"].n_vertices == 1300, "the shape change undid the level of detail"
-        assert ready.topology == {"tshirt": f"mesh of {ready.specs['tshirt']}"}, "the new mesh was dropped"
-    finally:
-        release.set()
-        worker.stop()
+        scene.stop()
 
 
 # ------------------------------------------------------------------------------------------ viewer (HTTP)
@@ -278,7 +235,7 @@ FAULTY_NODE = r"""
 import json, sys
 import rclpy.publisher
 from sensor_msgs.msg import PointCloud2
-from agentdress_ros.ros import node as node_module
+from agentdress_ros.ros import crowd as crowd_module, markers as markers_module, node as node_module
 
 faults = json.loads(sys.argv[1])
 
@@ -294,14 +251,14 @@ def failing(place, real, counts=lambda *args: True):
         return real(*args, **kwargs)
     return wrapped
 
-Node = node_module.AgentDressNode
-Node._install = failing("install", Node._install)
+Node, Crowd = node_module.AgentDressNode, crowd_module.Crowd
+Crowd._install = failing("install", Crowd._install)
 Node._on_status = failing("status", Node._on_status)
-Node._on_built = failing("on_built", Node._on_built)
-node_module.set_cloud_vertices = failing("pack", node_module.set_cloud_vertices)
-node_module.make_marker = failing("marker", node_module.make_marker)
+Crowd._prepare = failing("prepare", Crowd._prepare)
+crowd_module.SerializedCloud.set = failing("pack", crowd_module.SerializedCloud.set)
+markers_module.make_marker = failing("marker", markers_module.make_marker)
 rclpy.publisher.Publisher.publish = failing("publish", rclpy.publisher.Publisher.publish,
-                                            lambda publisher, msg: isinstance(msg, PointCloud2))
+                                            lambda publisher, msg: publisher.msg_type is PointCloud2)
 sys.exit(node_module.main(["agentdress_node", *sys.argv[2:]]))
 """
 
@@ -483,7 +440,7 @@ def test_live_level_of_detail_changes_during_a_shape_sweep_keep_clouds_and_mesh_
 
 FAULTS = {
     "install": {"1": "RuntimeError"},  # call 0 is the start-up install
-    "on_built": {"0": "RuntimeError"},
+    "prepare": {"1": "RuntimeError"},  # the worker's topology messages of a build; call 0 is the start-up one
     "status": {"1": "RuntimeError", "2": "RuntimeError"},
     "pack": {"3": "RuntimeError", "4": "RuntimeError"},
     "publish": {"6": "RuntimeError"},
@@ -518,17 +475,25 @@ def test_faults_in_cloud_packing_and_publishing_keep_the_clouds_flowing(faulty):
     assert all(np.isfinite(cloud_to_vertices(c)).all() and c.width == size for c in faulty.clouds[-5:])
 
 
-def test_faults_in_the_model_worker_callback_and_the_install_keep_shape_changes_working(faulty):
+def test_faults_in_the_scene_worker_and_the_install_keep_rebuilds_and_shape_changes_working(faulty):
+    # the first rebuild fails on the worker: counted, the running garment stays, the parameter set back
+    failures = faulty.last("counts", "rebuild_failures")
+    assert faulty.set_parameters(garment_vertices=["tshirt:1300"])[0].successful
+    faulty.wait_status(lambda s: s["counts"].get("rebuild_failures", 0) == failures + 1, 60.0, "the failed build")
+    assert faulty.wait(lambda: faulty.get_parameter("garment_vertices") == [f"tshirt:{VERTICES}"], 20.0)
+    # the next one goes live although its first install raises: tried again on the next tick
+    assert faulty.set_parameters(garment_vertices=["tshirt:1300"])[0].successful
+    faulty.wait_status(lambda s: s["garments"]["tshirt"]["vertices"] == 1300, 60.0, "the rebuilt T-shirt")
     for weight in (0.8, 0.3):
         beta = [0.5, 0.6667, 0.5, weight, 0.5, 0.5]
         faulty.shapes.publish(Float32MultiArray(data=beta))
         faulty.wait_status(lambda s: s["shape"] == pytest.approx(beta, abs=1e-6), 30.0, f"shape {beta}")
-    status = faulty.status[-1]
-    assert status["errors"].get("worker") == 1 and status["errors"].get("install") == 1, status["errors"]
+    assert faulty.status[-1]["errors"].get("install") == 1, faulty.status[-1]["errors"]
     log = faulty.child.output(200_000)
-    assert "injected fault: on_built call 0" in log and "injected fault: install call 1" in log
+    assert "injected fault: prepare call 1" in log and "injected fault: install call 1" in log
     stamp = faulty.node.get_clock().now().nanoseconds
     assert _answered(faulty, stamp, [0.25])
+    assert faulty.clouds[-1].width == len(faulty.meshes[-1].vertices) == 1300
 
 
 def test_marker_thread_failures_are_reported_and_a_dead_thread_restarted(faulty):

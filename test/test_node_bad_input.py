@@ -20,7 +20,7 @@ from agentdress_ros.motion.joint_names import JOINT_NAMES
 from agentdress_ros.ros.inputs import InputRejected, PoseInput, check_shape_values
 from agentdress_ros.engine.config import EngineKnobs
 from agentdress_ros.ros.params import GarmentEngines, ParameterError, check_garment_config, parse_garment_map, validate
-from agentdress_ros.ros.runtime import GarmentSpec, OutputGuard, SceneSpec, build_model_set
+from agentdress_ros.ros.runtime import GarmentSpec, SceneSpec, build_model_set
 
 # ---------------------------------------------------------------------------------------------------- pure checks
 
@@ -135,20 +135,6 @@ def test_missing_database_names_the_file_or_falls_back_when_configured(body, tmp
     assert fallback.models["tshirt"].kind == "skinned" and str(missing) in " ".join(fallback.warnings)
 
 
-def test_output_guard_falls_back_to_the_last_good_frame():
-    guard = OutputGuard()
-    assert guard.check("t", None) == (None, "synthesis_error")
-    good = np.ones((4, 3), np.float32)
-    frame, problem = guard.check("t", good)
-    assert problem == "" and np.array_equal(frame, good)
-    bad = good.copy()
-    bad[2, 1] = np.nan
-    frame, problem = guard.check("t", bad)
-    assert problem == "non_finite_output" and np.array_equal(frame, good)
-    good[:] = 7  # the guard owns a copy
-    assert guard.check("t", bad)[0][0, 0] == 1
-
-
 # ------------------------------------------------------------------------------- in-process node, NaN-ing model
 
 rclpy = pytest.importorskip("rclpy", reason="rclpy (ros-jazzy-rclpy wheels, requirements/runtime.txt) is not importable")
@@ -170,35 +156,37 @@ def test_node_never_publishes_non_finite_synthesis(body, ros_domain):
     try:
         node = AgentDressNode(body, context=context, parameter_overrides=[
             Parameter("garment_vertices", value=["tshirt:400"]), Parameter("status_rate_hz", value=0.5)])
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import PointCloud2
+
         published = []
-        node.point_pubs["tshirt"].publish = lambda msg: published.append(cloud_to_vertices(msg))
+        crowd = node.agents  # the crowd of one
+        crowd.entities[""].points["tshirt"].publish = lambda data: published.append(
+            cloud_to_vertices(deserialize_message(data, PointCloud2)))
         node._on_tick()  # the rest-pose frame: the last good one from now on
         good = published[-1]
-        real = node.models["tshirt"]
+        agent = crowd.scene.agents[""]
+        garment = agent.garments["tshirt"]
+        real = garment.dress
 
-        class Broken:
-            def __getattr__(self, name):
-                return getattr(real, name)
+        def nan_ing(level, rotvecs, translation):
+            out = real(level, rotvecs, translation).copy()
+            out[5] = np.nan
+            return out
 
-            def synthesize(self, rotvecs, translation):
-                out = real.synthesize(rotvecs, translation).copy()
-                out[5] = np.nan
-                return out
+        def raising(level, rotvecs, translation):
+            raise RuntimeError("engine exploded")
 
-        class Raising(Broken):
-            def synthesize(self, rotvecs, translation):
-                raise RuntimeError("engine exploded")
-
-        for broken in (Broken(), Raising()):
-            node.models["tshirt"] = broken
-            node.pose.accept(["LeftArm_rx"], [0.3 + len(published)])
+        for broken in (nan_ing, raising):
+            garment.dress = broken
+            agent.pose.accept(["LeftArm_rx"], [0.3 + len(published)])
             node._on_tick()
             assert np.isfinite(published[-1]).all()
             np.testing.assert_array_equal(published[-1], good)
         assert node.stats.counts["non_finite_output:tshirt"] == 1
         assert node.stats.counts["synthesis_error:tshirt"] == 1
-        node.models["tshirt"] = real
-        node.pose.accept(["LeftArm_rx"], [0.9])
+        garment.dress = real
+        agent.pose.accept(["LeftArm_rx"], [0.9])
         node._on_tick()
         assert not np.array_equal(published[-1], good)  # recovers as soon as the model does
         node.destroy_node()

@@ -221,7 +221,8 @@ class DisplayModel:
                 self._normals = np.empty((len(inner), 3), dtype=np.float32)
             push_out_of_inner(coarse, inner, self.inner_faces, self.binding, normals=self._normals)
             if self.under is not None:
-                lift_over_inner(coarse, self.coarse_faces, inner, self.under, normals=self._own_normals, lift=self._lift)
+                lift_over_inner(coarse, self.coarse_faces, inner, self.under, normals=self._own_normals,
+                                lift=self._lift)
         middle = time.perf_counter()
         self.coarse = coarse
         out = coarse

@@ -1,6 +1,10 @@
-"""The node's crowd mode: parameters and topics of many agents mapped onto `agentdress_ros.scene` (wiring only).
+"""The node's agents: parameters and topics of one or many agents mapped onto `agentdress_ros.scene` (wiring only).
 
-Active when the parameter `agents` lists names. Per agent `<a>` (topics relative to the node's namespace; `~` is
+One path for one and many agents. With `agents` empty the node dresses a crowd of one, the single agent: its
+topics are the node's own (joint_state_topic and shape_topic in; ~/<garment>/points, ~/<garment>/mesh, ~/body/*,
+~/marker out: the node's docstring), it has no levels of detail (the single agent is always dressed in full), and
+~/status carries its keys at the top (synthesis_ms, unknown_joint_names, garments, shape, model_generation, inside).
+With `agents` listing names, per agent `<a>` (topics relative to the node's namespace; `~` is
 /agentdress_node):
   in   <a>/joint_states          sensor_msgs/JointState      (qos.joint_states.*; <a>/<joint_state_topic>)
   in   <a>/body_shape            std_msgs/Float32MultiArray  (qos.shape.*; <a>/<shape_topic>)
@@ -78,6 +82,17 @@ def dds_thread_ids() -> list[int]:
     return ids
 
 
+SINGLE = ""  # the name of the crowd of one's agent: its topics and status keys carry no agent prefix
+#: Node parameters that decide an agent's garment models: a build that fails sets them back to the running values.
+SCENE_PARAMETERS = ("garments", "garment_vertices", "garment_databases", "garment_models", "engine", "publish_body",
+                    "skinned_fallback", "display_subdivision", "garment_layers")
+
+
+def scoped(name: str, what: str) -> str:
+    """`what` of agent `name` (a topic, a status or warning key): "<name>/<what>", just `what` for the single agent."""
+    return f"{name}/{what}" if name else what
+
+
 def _never_called(msg):
     """Callback of the polled subscriptions (their node is never spun)."""
 
@@ -143,11 +158,12 @@ class AgentTopics:
 
 
 def scene_config(config: dict) -> SceneConfig:
-    """The node's crowd parameters -> SceneConfig (ValueError with the reason, e.g. a bad tier line)."""
+    """The node's crowd parameters -> SceneConfig (ValueError with the reason, e.g. a bad tier line). A crowd of
+    one has no levels of detail: the single agent is dressed in full whatever the viewer does."""
     lod = LodPolicy(tiers=parse_tiers(config["lod.tiers"]), hysteresis=config["lod.hysteresis"],
                     fov_deg=config["lod.fov_deg"], margin_deg=config["lod.margin_deg"], cull=config["lod.cull"])
-    return SceneConfig(lod=lod, lod_enabled=config["lod.enabled"], budget_ms=config["budget_ms"],
-                       fade_frames=int(config["lod.fade_frames"]))
+    return SceneConfig(lod=lod, lod_enabled=config["lod.enabled"] and bool(config["agents"]),
+                       budget_ms=config["budget_ms"], fade_frames=int(config["lod.fade_frames"]))
 
 
 class Crowd:
@@ -157,8 +173,9 @@ class Crowd:
         """`node`: an AgentDressNode (its public publishing, QoS and reporting methods); `overrides`: the values of
         its parameters under the prefix `agent` ({"<agent>.<key>": value})."""
         self.node, self.config = node, node.config
+        self.single = not self.config["agents"]
         self.scene = Scene(body, scene_config(self.config), pose_factory=self._pose_input,
-                           on_error=lambda message: node.warn("crowd/build", message), prepare=self._prepare)
+                           on_error=lambda message: node.warn("fallback", message), prepare=self._prepare)
         self.overrides = agent_overrides(overrides)
         self.entities: dict[str, AgentTopics] = {}
         self.arrivals: dict = {}  # agent -> its JointState reader on the spun node (the agents answered on arrival)
@@ -190,7 +207,25 @@ class Crowd:
         # inside_check_hz: the garments of the agent nearest the viewer in view, tested against its posed body
         self.inside = InsideChecker(body, lambda error: node.report_error("inside_check", error))
         self.inside_agent = None
-        self.set_agents(self.config["agents"], initial=True)
+        self.last_publish = 0.0  # time.monotonic() of the last clouds sent (the keep-alive waits a period after)
+        self.installs: dict[str, int] = {}  # agent -> agents installed under its name (model_generation)
+        # the values of SCENE_PARAMETERS behind the running agents, and behind each build asked for until it goes live
+        self._running_parameters = self._scene_parameters()
+        self._requested: dict = {}
+        self.set_agents(self.names(), initial=True)
+
+    def names(self) -> list[str]:
+        """The agents to dress: those `agents` lists, or the single agent."""
+        return list(self.config["agents"]) or [SINGLE]
+
+    def ready_message(self, seconds: float) -> str:
+        """The start-up log line."""
+        if self.single:
+            agent = self.scene.agents[SINGLE]
+            return f"garment models ready in {seconds:.2f} s: " + ", ".join(
+                f"{n} ({g.kind}, {g.n_vertices} vertices)" for n, g in agent.garments.items())
+        return (f"crowd ready in {seconds:.2f} s: {len(self.entities)} agents, garments shared: "
+                f"{len(self.scene.library)}")
 
     # ---- agents ---------------------------------------------------------------------------------------------
     def _pose_input(self):
@@ -203,10 +238,17 @@ class Crowd:
         if "stamp_jump_threshold_s" in changed:
             for agent in self.scene.agents.values():
                 agent.pose.stamp_jump_ns = self.node.stamp_jump_ns
-        if changed & (set(AGENT_KEYS) | {"skinned_fallback"}):
+        if changed & ((set(AGENT_KEYS) | set(SCENE_PARAMETERS)) - {"shape"}):
             self.rebuild()
+        elif "shape" in changed:  # a refit, as a body_shape message: the agents that take the node's shape
+            for name in self.entities:
+                if "shape" not in self.overrides.get(name, {}):
+                    self._apply_shape(name, self.config["shape"], "shape parameter")
         if "agents" in changed:
-            self.set_agents(self.config["agents"])
+            self.set_agents(self.names())
+
+    def _scene_parameters(self) -> list:
+        return [self.node.get_parameter(name) for name in SCENE_PARAMETERS]
 
     def spec(self, name: str) -> AgentSpec:
         """The agent's spec: the node's parameters with the agent's overrides."""
@@ -232,16 +274,46 @@ class Crowd:
                 self.scene.install(agent)
                 self._install(agent)
             else:
-                self.scene.request_agent(self.spec(name))
+                self._request(name)
+
+    def _request(self, name: str):
+        """Build agent `name` from the current parameters on the worker, remembering them for a rollback."""
+        spec = self.spec(name)
+        self._requested[spec] = self._scene_parameters()
+        while len(self._requested) > 8 + len(self.entities):  # requests superseded before they were built
+            self._requested.pop(next(iter(self._requested)))
+        self.scene.request_agent(spec)
 
     def rebuild(self):
-        """Every agent again from the current parameters (a garment or engine change), off the frame path."""
+        """Every agent again from the current parameters (a garment or engine change), off the frame path (the
+        garment data stays loaded in the scene's library: a build that changes nothing is quick)."""
         for name in self.entities:
-            self.scene.request_agent(self.spec(name))
+            self._request(name)
+
+    def take_failures(self):
+        """Executor thread: builds that failed keep the running agent; when the parameters still ask for the failed
+        build they are set back to the running agent's values, so `ros2 param get` shows what runs."""
+        node = self.node
+        for name, spec, message in self.scene.take_failures():
+            node.stats.counts["rebuild_failures"] += 1
+            node.warn("rebuild", message + "; the running garment models stay")
+            if spec is None or spec != self.spec(name):
+                continue  # a refit, or the parameters have moved on since: their own build decides
+            rollback = [p for p in self._running_parameters if p.value != node.get_parameter(p.name).value]
+            if not rollback:
+                continue
+            results = node.set_parameters(rollback)
+            if all(r.successful for r in results):
+                node.stats.counts["parameter_rollbacks"] += 1
+                node.warn("rollback", "parameters set back to the running garment models: "
+                          + ", ".join(f"{p.name}={p.value!r}" for p in rollback))
+            else:
+                node.warn("rollback", "cannot set the parameters back to the running garment models: "
+                          + "; ".join(r.reason for r in results if not r.successful))
 
     def _input_topic(self, name: str, parameter: str) -> str:
         """An agent's input topic: the single agent's (joint_state_topic, shape_topic) under its name."""
-        return f"{name}/{self.config[parameter].lstrip('/')}"
+        return f"{name}/{self.config[parameter].lstrip('/')}" if name else self.config[parameter]
 
     def _create_inputs(self, name: str):
         """The agent's input subscriptions, on the node the executor never waits on (see `poll`)."""
@@ -279,19 +351,24 @@ class Crowd:
             self.bones.pop((agent.name, g), None)
         for g in agent.garments:
             if g not in entity.points:
-                entity.points[g] = node.create_publisher(PointCloud2, f"~/{agent.name}/{g}/points",
-                                                            node.qos("points"), event_callbacks=QUIET_PUBLISHER)
-                entity.mesh[g] = node.create_publisher(Mesh, f"~/{agent.name}/{g}/mesh", node.topology_qos,
-                                                          event_callbacks=QUIET_PUBLISHER)
+                entity.points[g] = node.create_publisher(PointCloud2, "~/" + scoped(agent.name, f"{g}/points"),
+                                                         node.qos("points"), event_callbacks=QUIET_PUBLISHER)
+                entity.mesh[g] = node.create_publisher(Mesh, "~/" + scoped(agent.name, f"{g}/mesh"),
+                                                       node.topology_qos, event_callbacks=QUIET_PUBLISHER)
             entity.drawn.pop(g, None)
+            self.clouds.pop((agent.name, g), None)  # of the old topology: never re-sent with the new mesh
             self._send_topology(agent, entity, g, agent.garments[g].topology_at(agent.level or 0))
             if g not in entity.skin and agent.garments[g].skin_binding() is not None:
-                entity.skin[g] = node.create_publisher(Float32MultiArray, f"~/{agent.name}/{g}/skin",
-                                                          node.topology_qos, event_callbacks=QUIET_PUBLISHER)
-                entity.bones[g] = node.create_publisher(PoseArray, f"~/{agent.name}/{g}/bones", node.qos("points"),
-                                                           event_callbacks=QUIET_PUBLISHER)
+                entity.skin[g] = node.create_publisher(Float32MultiArray, "~/" + scoped(agent.name, f"{g}/skin"),
+                                                       node.topology_qos, event_callbacks=QUIET_PUBLISHER)
+                entity.bones[g] = node.create_publisher(PoseArray, "~/" + scoped(agent.name, f"{g}/bones"),
+                                                        node.qos("points"), event_callbacks=QUIET_PUBLISHER)
         entity.installed = agent
         entity.skin_generation = None  # sent with the agent's next frame
+        self.installs[agent.name] = self.installs.get(agent.name, 0) + 1
+        parameters = self._requested.pop(agent.spec, None)
+        if parameters is not None:
+            self._running_parameters = parameters
 
     def _send_topology(self, agent, entity: "AgentTopics", g: str, kind: str):
         """The garment's topology message of `kind` (Crowd._prepare), unless it is the one sent last: a tier
@@ -342,12 +419,13 @@ class Crowd:
             shape_turn = i % SHAPE_POLL_TICKS == turn
             # an agent the next tick will not dress (culled, or not due at its tier's rate) leaves its poses in
             # the keep-last queue: taking them is most of the tick's fixed cost in a large crowd
+            shape_turn = shape_turn or len(self.entities) <= ARRIVAL_AGENTS  # a small crowd: every tick
             if shape_turn or agent is None or self.scene.needs_input(agent):
                 self._take_poses(name, entity, agent)
             if shape_turn:
                 if entity.pending:
                     self._parse_pending(agent)
-                shape = self.node.guarded(f"{name}/body_shape", self._on_shape)
+                shape = self.node.guarded(scoped(name, "body_shape"), self._on_shape)
                 for msg in self._take(entity, 1):
                     shape(name, msg)
         self._shape_turn += 1
@@ -375,7 +453,7 @@ class Crowd:
         if not entity.pending:
             return
         pending, entity.pending = entity.pending, []
-        accept = self.node.guarded(f"{agent.name}/joint_states", self._on_joint_state)
+        accept = self.node.guarded(scoped(agent.name, "joint_states"), self._on_joint_state)
         newest = entity.reader.read(pending[-1])
         if len(newest[0]) < len(JOINT_NAMES):  # a partial update: the older ones count too (parsing is the cost)
             for raw in pending[:-1]:
@@ -394,7 +472,7 @@ class Crowd:
             if name not in self.arrivals and name in self.entities:
                 self.arrivals[name] = node.create_subscription(
                     JointState, self._input_topic(name, "joint_state_topic"),
-                    node.guarded(f"{name}/joint_states", lambda m, n=name: self._on_arrival(n, m)),
+                    node.guarded(scoped(name, "joint_states"), lambda m, n=name: self._on_arrival(n, m)),
                     node.qos("joint_states"), event_callbacks=QUIET_SUBSCRIPTION, raw=True)
 
     def _answered_on_arrival(self) -> list[str]:
@@ -426,7 +504,12 @@ class Crowd:
         # it among the first (nearest first) inside the budget, instead of making that tick late.
         if agent.tier is not None and self.node.ms_until_tick() < self.scene.estimate(agent, agent.tier):
             return  # its new pose version makes it a candidate of that tick
-        self.scene.dress_now(name, self._publish)
+        start = time.perf_counter()
+        if self.scene.dress_now(name, self._publish):
+            stats = self.node.stats
+            stats.counts["published_frames"] += 1
+            stats.counts["computed_ticks"] += 1  # a frame computed outside the timer's ticks
+            stats.tick_ms.append(1e3 * (time.perf_counter() - start))
 
     def _answer_arrivals(self):
         """Scene hook, between the agents a tick dresses: poses that reached the agents answered on arrival while
@@ -434,7 +517,7 @@ class Crowd:
         for name, sub in list(self.arrivals.items()):
             raws = _take_all(sub, sub.handle)
             if raws:
-                answer = self.node.guarded(f"{name}/joint_states", self._on_arrival)
+                answer = self.node.guarded(scoped(name, "joint_states"), self._on_arrival)
                 for raw in raws:  # oldest first, as the callback would have had them
                     answer(name, raw)
 
@@ -446,27 +529,36 @@ class Crowd:
             return
         try:
             unknown = agent.pose.accept(names, positions, stamp_ns)
-            if unknown:
-                node.stats.counts["unknown_joint_names"] += len(unknown)
-                node.warn(f"{name}/joint_states/unknown_names", f"{name}: ignoring unknown joint names: "
-                           + ", ".join(unknown[:10]))
         except InputRejected as error:
-            node.reject(f"{name}/joint_states", error)
+            node.reject(scoped(name, "joint_states"), error)
             return
-        if agent.pose.timeline_jump_ns:  # a cut in this agent's motion: its decay history is from the old one
+        if unknown:  # each name once (listed on ~/status); the log line throttled like every warning
+            node.stats.counts["unknown_joint_names"] += len(unknown)
+            shown = ", ".join(unknown[:10]) + (f" and {len(unknown) - 10} more" if len(unknown) > 10 else "")
+            node.warn(scoped(name, "joint_states/unknown_names"),
+                      (f"{name}: " if name else "") + f"ignoring unknown joint names: {shown}")
+        jump = agent.pose.timeline_jump_ns
+        if jump:  # a cut in this agent's motion: its decay history is from the old one
             node.stats.counts["new_timelines"] += 1
+            node.warn(scoped(name, "joint_states/new_timeline"),
+                      f"{scoped(name, 'JointState')} stamps jumped {'back' if jump < 0 else 'forward'} by "
+                      f"{abs(jump) * 1e-9:.3f} s (more than stamp_jump_threshold_s): following the new timeline")
             for garment in agent.garments.values():
                 garment.reset()
 
     def _on_shape(self, name: str, msg: Float32MultiArray):
         self.node.stats.counts["shapes_received"] += 1
         try:
-            update = check_shape_values(msg.data)
+            self._apply_shape(name, msg.data, scoped(name, "body_shape"))
         except InputRejected as error:
-            self.node.reject(f"{name}/body_shape", error)
-            return
+            self.node.reject(scoped(name, "body_shape"), error)
+
+    def _apply_shape(self, name: str, values, source: str):
+        """Refit agent `name` to the shape `values` (checked: InputRejected, or clamped with a warning)."""
+        update = check_shape_values(values)
         if update.clamped:
-            self.node.warn(f"{name}/body_shape/clamped", f"{name}/body_shape: {update.message}")
+            self.node.stats.counts["shapes_clamped"] += 1
+            self.node.warn(f"{source}/clamped", f"{source}: {update.message}")
         self.scene.request_shape(name, update.beta)
 
     def _on_viewer(self, msg: PoseStamped):
@@ -481,27 +573,50 @@ class Crowd:
 
     # ---- the tick -------------------------------------------------------------------------------------------
     def _publish(self, agent, frames: dict, stamp_ns: int):
+        """An agent's dressed frames out, each garment's packed into its (reused) serialized cloud. A garment whose
+        dress raised or gave non-finite vertices is never emitted: its last good cloud goes out again, stamped
+        with this frame."""
+        node = self.node
+        node.stats.synthesis_ms.append(agent.dress_ms)
         entity = self.entities.get(agent.name)
         if entity is None or entity.installed is not agent:
             return
-        stamp_ns = stamp_ns or self.node.get_clock().now().nanoseconds
+        stamp_ns = stamp_ns or node.get_clock().now().nanoseconds
         frame_id = agent.spec.frame_id
+        self.last_publish = time.monotonic()
         for g, vertices in frames.items():
-            if vertices is None:  # posed as bones only (_sync_bones_only)
-                if g in entity.bones and np.isfinite(agent.garments[g].base.transforms).all():
+            label = scoped(agent.name, g)
+            garment = agent.garments[g]
+            if vertices is None and g not in agent.errors:  # posed as bones only (_sync_bones_only)
+                if g in entity.bones and np.isfinite(garment.base.transforms).all():
                     self._publish_bones(agent, entity, g, stamp_ns)
                 continue
-            if not np.isfinite(vertices).all():  # never emit garbage: keep the last good cloud
-                self.node.stats.counts[f"non_finite_output:{agent.name}/{g}"] += 1
-                continue
-            garment = agent.garments[g]
-            self._send_topology(agent, entity, g, garment.topology_at(garment.level))
             key = (agent.name, g)
+            if vertices is None or not np.isfinite(vertices).all():
+                problem = "synthesis_error" if vertices is None else "non_finite_output"
+                node.stats.counts[f"{problem}:{label}"] += 1
+                node.warn(f"{problem}/{label}", f"{label}: " + (
+                    f"synthesis failed ({agent.errors[g]!r})" if vertices is None else
+                    "synthesis produced non-finite vertices") + "; re-sending the last good frame")
+                cloud = self.clouds.get(key)
+                if cloud is None or cloud.frame_id != frame_id:
+                    continue
+                vertices = cloud.vertices().copy()
+            self._send_topology(agent, entity, g, garment.topology_at(garment.level))
             cloud = self.clouds.get(key)
-            if cloud is None or cloud.frame_id != frame_id or cloud.n_vertices != len(vertices):
-                cloud = self.clouds[key] = SerializedCloud(frame_id, len(vertices))
-            entity.points[g].publish(cloud.set(vertices, stamp_ns))
-            if g in entity.bones:
+            try:
+                if cloud is None or cloud.frame_id != frame_id or cloud.n_vertices != len(vertices):
+                    cloud = self.clouds[key] = SerializedCloud(frame_id, len(vertices))
+                data = cloud.set(vertices, stamp_ns)
+            except Exception as error:  # a half-written cloud is dropped, never re-sent by the keep-alive
+                self.clouds.pop(key, None)
+                node.report_error(f"pack/{label}", error)
+                continue
+            try:
+                entity.points[g].publish(data)
+            except Exception as error:
+                node.report_error(f"publish/{label}", error)
+            if g in entity.bones and g not in agent.errors:
                 self._publish_bones(agent, entity, g, stamp_ns)
 
     def _publish_bones(self, agent, entity, g: str, stamp_ns: int):
@@ -520,6 +635,7 @@ class Crowd:
 
     def tick(self) -> dict:
         started = time.perf_counter()
+        self.take_failures()
         self.poll()
         self._install_new()
         if self.scene.ticks % SHAPE_POLL_TICKS == 0:
@@ -546,10 +662,15 @@ class Crowd:
                     garment.bones_only = not markers and entity.points[g].get_subscription_count() == 0
 
     def _install_new(self):
+        """Executor thread: make the agents the worker built live. One whose install fails is tried again next
+        tick; until then its old publishers and topology stay."""
         for agent in list(self.scene.agents.values()):
             entity = self.entities.get(agent.name)
             if entity is not None and entity.installed is not agent:
-                self._install(agent)
+                try:
+                    self._install(agent)
+                except Exception as error:
+                    self.node.report_error("install", error)
 
     def marker_jobs(self) -> list:
         """Executor thread, at marker_rate_hz: (publisher getter, {garment: (vertices copy, faces)}, stamp,
@@ -566,15 +687,17 @@ class Crowd:
                 continue
             if entity.marker is None:
                 with node.publish_lock:
-                    entity.marker = node.create_publisher(Marker, f"~/{name}/marker", 10,
+                    entity.marker = node.create_publisher(Marker, "~/" + scoped(name, "marker"), 10,
                                                              event_callbacks=QUIET_PUBLISHER)
             frames = {g: (cloud.vertices(), agent.garments[g].faces) for g, cloud in clouds.items()}
             jobs.append((lambda e=entity: e.marker, frames,
                          stamp_from_ns(max(c.stamp_ns for c in clouds.values())), agent.spec.frame_id))
         return jobs
 
-    def keepalive(self):
-        """Re-send the last clouds of agents in view (a display that joined late); culled agents stay silent."""
+    def keepalive(self) -> bool:
+        """Re-send the last clouds of agents in view (a display that joined late); culled agents stay silent.
+        Returns whether anything went out."""
+        sent = False
         for (name, g), cloud in list(self.clouds.items()):
             agent = self.scene.agents.get(name)
             if agent is not None and agent.visible and name in self.entities:
@@ -582,6 +705,9 @@ class Crowd:
                 bones = self.bones.get((name, g))
                 if bones is not None and g in self.entities[name].bones:
                     self.entities[name].bones[g].publish(bones.data)
+                sent = True
+        self.last_publish = time.monotonic()
+        return sent
 
     def status(self) -> dict:
         status = self.scene.status()
@@ -592,7 +718,15 @@ class Crowd:
         status["pending"] = sorted(set(self.entities) - set(self.scene.agents))
         status["worker_idle"] = self.scene.idle()  # no agent build or shape refit waiting
         status["inside"] = {"agent": self.inside_agent, **self.inside.status()}
-        return status
+        if not self.single:
+            return {"crowd": status}
+        agent = self.scene.agents[SINGLE]
+        return {"crowd": status, "unknown_joint_names": sorted(agent.pose.unknown_names)[:50],
+                "garments": {n: {"kind": g.kind, "vertices": g.n_vertices, "faces": len(g.faces),
+                                 "shape_limits": g.shape_limits}  # what the garment cannot follow
+                             for n, g in agent.garments.items()},
+                "shape": list(agent.beta), "model_generation": self.installs[SINGLE] - 1 + agent.shape_generation,
+                "inside": self.inside.status()}
 
     def check_inside(self):
         """Executor thread, at inside_check_hz: hand the last clouds of the agent nearest the viewer in view (not its

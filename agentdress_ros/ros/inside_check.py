@@ -9,10 +9,11 @@ delays the ticks around it by a few milliseconds: a diagnostic to switch on whil
 """
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
+
+from .jobs import LatestJobThread
 
 __all__ = ["InsideChecker"]
 
@@ -28,41 +29,18 @@ class InsideChecker:
         self.results: dict = {}
         self.checks = 0
         self._shape_key, self._shape = None, None
-        self._job, self._event, self._stopped = None, threading.Event(), False
-        self._start()  # now, before the node raises its executor thread's priority (a thread inherits it)
-
-    def _start(self):
-        self._thread = threading.Thread(target=self._loop, name="agentdress-inside", daemon=True)
-        self._thread.start()
+        # started now, before the node raises its executor thread's priority
+        self.thread = LatestJobThread("agentdress-inside", self._check_job, on_error)
 
     def submit(self, frames: dict, rotvecs, root_translation, beta):
         """frames {name: (vertices (V, 3), faces (F, 3))} published for the pose rotvecs (B, 3), root (3,) and
         shape beta; copies are the caller's (the thread reads them later)."""
-        if not self._thread.is_alive():  # it died of something the loop does not catch
-            self._start()
-        self._job = (frames, np.array(rotvecs, dtype=np.float64), np.array(root_translation, dtype=np.float64),
-                     tuple(float(b) for b in beta))
-        self._event.set()
+        self.thread.submit((frames, np.array(rotvecs, dtype=np.float64),
+                            np.array(root_translation, dtype=np.float64), tuple(float(b) for b in beta)))
 
-    def _loop(self):
-        import os
-
-        try:  # a thread restarted from a realtime executor thread would inherit its SCHED_FIFO: a diagnostic is not
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        except (AttributeError, OSError):
-            pass
-        while not self._stopped:
-            if not self._event.wait(timeout=0.5):
-                continue
-            self._event.clear()
-            job, self._job = self._job, None
-            if job is None:
-                continue
-            try:
-                self.results = self.check(*job)
-                self.checks += 1
-            except Exception as error:  # the next snapshot is a fresh try; the thread goes on
-                self.on_error(error)
+    def _check_job(self, job):
+        self.results = self.check(*job)
+        self.checks += 1
 
     def check(self, frames: dict, rotvecs, root_translation, beta) -> dict:
         """{"garments": {name: shares in %}, "ms", "checked_at"} for one snapshot (see submit)."""
@@ -93,5 +71,4 @@ class InsideChecker:
         return {"checks": self.checks, "age_s": round(time.monotonic() - results.pop("checked_at"), 2), **results}
 
     def stop(self):
-        self._stopped = True
-        self._event.set()
+        self.thread.stop()

@@ -326,7 +326,8 @@ PARAMETERS: dict[str, Spec] = {
     "lod.enabled": Spec(True, "levels of detail and culling by the viewer's pose (false: every agent fully dressed)",
         check=boolean),
     "lod.tiers": Spec(list(DEFAULT_TIER_TEXT), "tiers by distance, '<name> <max m|inf> <synthesis|skinned> "
-                                               "[neighbors=n] [penetration=false] [pose_model=examples] [every=n] [display=full|none] "
+                                               "[neighbors=n] [penetration=false] [pose_model=examples] [every=n] "
+                                               "[display=full|none] "
                                                "...'", runtime=False, check=tier_lines),
     "lod.hysteresis": Spec(0.5, "metres an agent must pass a tier boundary by before it changes tier",
         check=number(0.0, 100.0)),

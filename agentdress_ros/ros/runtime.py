@@ -1,26 +1,21 @@
-"""The node's working state without ROS: which models run, refits off the frame path, guarded outputs, statistics.
+"""The node's statistics, and the single agent's garment models as one set (no ROS).
 
-Threads: the ROS executor thread calls `take_ready`, `synthesize` and the input methods; one worker thread
-(`ModelWorker`) builds model sets for a new body shape or garment list. A built set is handed over by reference
-under a lock and swapped in by the next tick, so a tick never waits for a refit (a T-shirt + trousers shape change
-is ~30 ms, a new garment template ~1-2 s).
+`build_model_set(SceneSpec)` makes the models one agent wears, dressed for display (display.models), from the
+garment makers directly: the display check and the coverage tests measure them. The node runs the same code
+through its scene (scene.Scene, whose near tier is bit for bit these models: test_scene.py).
 """
 from __future__ import annotations
 
-import threading
-import time
 from collections import Counter, deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..body import REFERENCE_SHAPE
 from ..display.models import dress_for_display
 from ..scene.garments import GarmentSpec
 from ..models.garment_models import GarmentDatabaseError, make_body_model, make_garment_model
 
-__all__ = ["GarmentSpec", "ModelSet", "ModelWorker", "OutputGuard", "TickStats", "build_model_set", "inherit_topology",
-           "scene_key"]
+__all__ = ["GarmentSpec", "ModelSet", "SceneSpec", "TickStats", "build_model_set"]
 
 
 @dataclass(frozen=True)
@@ -94,178 +89,14 @@ def build_model_set(scene: SceneSpec, body, previous: ModelSet | None = None) ->
     return ModelSet(scene, models, specs, clamped, warnings, generation)
 
 
-class ModelWorker:
-    """Builds the latest requested SceneSpec on a background thread; `take_ready()` hands over the newest result.
-
-    Requests coalesce: a flood of shape messages builds only the newest shape. `prepare(set, previous)` runs on the
-    worker before a set is handed over (e.g. topology messages for the models that are new in it). A failed build
-    leaves the live set as it was and is kept for `take_failure()` (the node reports it and rolls its parameters
-    back); `on_built(set, seconds)` / `on_error(message)` are called on the worker thread. Nothing raised in a build
-    or a callback ends the thread: callback errors are kept for `take_errors()`, and `ensure_running()` restarts a
-    thread that died all the same.
-    """
-
-    def __init__(self, body, current: ModelSet, on_error=None, on_built=None, prepare=None):
-        self.body = body
-        self._current = current  # the newest built set (live or about to be)
-        self._wanted: SceneSpec | None = None
-        self._building: SceneSpec | None = None  # the scene the thread is building now
-        self._ready: ModelSet | None = None
-        self._failure: tuple[SceneSpec, str] | None = None
-        self._errors: deque[str] = deque(maxlen=16)
-        self._cond = threading.Condition()
-        self._stop = False
-        self._busy = False
-        self.restarts = 0
-        self.on_error = on_error or (lambda message: None)
-        self.on_built = on_built or (lambda model_set, seconds: None)
-        self.prepare = prepare or (lambda model_set, previous: None)
-        self._start_thread()
-
-    def _start_thread(self):
-        self._thread = threading.Thread(target=self._run, name="agentdress-model-worker", daemon=True)
-        self._thread.start()
-
-    def _latest(self) -> SceneSpec:
-        """The newest scene asked for: pending, else being built, else built. A shape change that arrives while a
-        new garment list builds must keep that list, not the one the running set has."""
-        for scene in (self._wanted, self._building):
-            if scene is not None:
-                return scene
-        return self._current.scene
-
-    @property
-    def wanted(self) -> SceneSpec:
-        with self._cond:
-            return self._latest()
-
-    def request(self, **changes) -> SceneSpec:
-        """Ask for the newest scene with `changes` (SceneSpec fields). Returns the requested spec."""
-        with self._cond:
-            scene = replace(self._latest(), **changes)
-            self._wanted = scene
-            self._cond.notify()
-            return scene
-
-    def take_ready(self) -> ModelSet | None:
-        with self._cond:
-            ready, self._ready = self._ready, None
-            return ready
-
-    def take_failure(self) -> tuple[SceneSpec, str] | None:
-        """(scene, message) of the newest build that failed since the last call, or None."""
-        with self._cond:
-            failure, self._failure = self._failure, None
-            return failure
-
-    def take_errors(self) -> list[str]:
-        """Messages of the callbacks that raised on the worker thread since the last call."""
-        with self._cond:
-            errors = list(self._errors)
-            self._errors.clear()
-            return errors
-
-    def idle(self) -> bool:
-        with self._cond:
-            return self._wanted is None and not self._busy and self._ready is None
-
-    def ensure_running(self) -> bool:
-        """Restart the thread if it died (True when it had to)."""
-        with self._cond:
-            if self._stop or self._thread.is_alive():
-                return False
-            self._busy, self._building = False, None
-            self.restarts += 1
-            self._start_thread()
-            return True
-
-    def _callback(self, name: str, callback, *args):
-        try:
-            callback(*args)
-        except Exception as error:  # a failing observer must not stop the builds
-            with self._cond:
-                self._errors.append(f"model worker: {name} callback failed: {error!r}")
-
-    def _run(self):
-        while True:
-            with self._cond:
-                while not self._stop and (self._wanted is None or self._wanted == self._current.scene):
-                    self._wanted = None
-                    self._cond.wait()
-                if self._stop:
-                    return
-                scene, previous = self._wanted, self._current
-                self._wanted, self._busy, self._building = None, True, scene
-            start = time.perf_counter()
-            try:
-                built = build_model_set(scene, self.body, previous)
-                self.prepare(built, previous)
-            except Exception as error:  # a bad request never kills the node: report, keep the live set
-                message = f"cannot rebuild garment models: {error}"
-                with self._cond:
-                    self._busy, self._building = False, None
-                    self._failure = (scene, message)
-                    if self._wanted is not None and scene_key(self._wanted) == scene_key(scene):
-                        # a shape change asked for during the failed build: apply it to the models that run
-                        self._wanted = replace(self._current.scene, beta=self._wanted.beta)
-                self._callback("on_error", self.on_error, message)
-                continue
-            with self._cond:
-                superseded = self._ready
-                if superseded is not None:
-                    inherit_topology(built, superseded)
-                self._current = self._ready = built
-                self._busy, self._building = False, None
-            self._callback("on_built", self.on_built, built, time.perf_counter() - start)
-
-    def stop(self):
-        with self._cond:
-            self._stop = True
-            self._cond.notify()
-        self._thread.join(timeout=5.0)
-
-
-def scene_key(scene: SceneSpec) -> tuple:
-    """What decides the models of a scene, all but the body shape (which only refits them)."""
-    return scene.garments, scene.publish_body, scene.skinned_fallback
-
-
-def inherit_topology(built: ModelSet, superseded: ModelSet) -> None:
-    """`built` replaces `superseded` before anyone took it: keep the topology messages of superseded's new models
-    that `built` reuses (same spec). Otherwise a new level of detail followed at once by a shape change would hand
-    over clouds of the new size with no mesh for them."""
-    for name, message in superseded.topology.items():
-        if name not in built.topology and built.specs.get(name) == superseded.specs.get(name):
-            built.topology[name] = message
-
-
-class OutputGuard:
-    """Keeps the last good frame per model; a non-finite or failed synthesis falls back to it (never emitted)."""
-
-    def __init__(self):
-        self.last_good: dict[str, np.ndarray] = {}
-
-    def reset(self, name: str):
-        self.last_good.pop(name, None)
-
-    def check(self, name: str, vertices) -> tuple[np.ndarray | None, str]:
-        """vertices (V, 3) or None (synthesis raised) -> (frame to publish or None, problem "" | reason)."""
-        if vertices is not None and np.isfinite(vertices).all():
-            good = self.last_good.get(name)
-            if good is None or good.shape != vertices.shape:
-                good = self.last_good[name] = np.empty(vertices.shape, dtype=np.float32)
-            np.copyto(good, vertices)
-            return good, ""
-        return self.last_good.get(name), "synthesis_error" if vertices is None else "non_finite_output"
-
-
 class TickStats:
     """Rolling timing statistics for the status topic (the last `window` ticks) and counters since start."""
 
     def __init__(self, window: int = 1000):
         self.tick_times = deque(maxlen=window)  # monotonic seconds of every timer tick
-        self.synthesis_ms = deque(maxlen=window)  # per computing tick, all models together
-        self.tick_ms = deque(maxlen=window)  # per computing tick, whole callback (synthesis + pack + publish)
+        self.synthesis_ms = deque(maxlen=window)  # per agent frame dressed, all its garments together
+        self.tick_ms = deque(maxlen=window)  # per timer tick (input, dressing, publishing) and per pose answered
+        # on arrival (dressing, publishing)
         self.counts = Counter()  # published_frames, keepalive_frames, computed_ticks, idle_ticks, late_ticks, ...
         self.rejected = Counter()  # reason -> messages
         self.errors = Counter()  # where -> exceptions caught there (the node went on)
@@ -289,7 +120,3 @@ class TickStats:
 
 # one percentile summary for the node status, the crowd scene and the benchmarks
 from ..scene.scene import percentiles  # noqa: E402,F401
-
-
-def default_scene(garments=("tshirt",), publish_body=False, beta=REFERENCE_SHAPE) -> SceneSpec:
-    return SceneSpec(tuple(GarmentSpec(g) for g in garments), publish_body, tuple(float(b) for b in beta))

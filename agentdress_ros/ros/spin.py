@@ -1,6 +1,8 @@
 """Spin until Ctrl-C or SIGTERM, for the node, the demo driver and the viewer: every way rclpy reports a stop is a
-normal stop (exit status 0)."""
+normal stop (exit status 0); and the node's threads' scheduling while it spins."""
 from __future__ import annotations
+
+import os
 
 
 def spin_until_shutdown(spin) -> None:
@@ -41,3 +43,34 @@ def run_publisher(node) -> int:
         if rclpy.ok():
             rclpy.shutdown()
     return code
+
+
+def set_realtime_priority(priority: int, logger) -> bool:
+    """SCHED_FIFO at `priority` for the calling thread only (the executor's; the DDS threads keep the normal
+    scheduler and run while it waits between ticks). Returns whether it took; a refusal is logged with the remedy."""
+    if priority <= 0:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (PermissionError, OSError) as error:
+        logger.warning(f"realtime_priority {priority}: not allowed ({error.strerror or error}); running with the "
+                       "normal scheduler. Grant CAP_SYS_NICE (e.g. docker --cap-add SYS_NICE) or an rtprio limit "
+                       "(ulimit -r, /etc/security/limits.conf)")
+        return False
+    logger.info(f"executor thread at SCHED_FIFO priority {priority}")
+    return True
+
+
+def raise_receive_threads(thread_ids, priority: int, logger) -> int:
+    """SCHED_FIFO at `priority` (above the executor's) for the node's own DDS threads: they receive only the poses
+    answered on arrival and other low-rate input, and hand them over without waiting for the end of a tick.
+    Returns how many threads took it."""
+    raised = 0
+    for tid in thread_ids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            raised += 1
+        except (PermissionError, OSError):
+            continue  # ended meanwhile, or refused like the executor's would have been
+    logger.info(f"{raised} DDS receive threads of the node's own participant at SCHED_FIFO priority {priority}")
+    return raised

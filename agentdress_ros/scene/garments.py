@@ -176,6 +176,16 @@ class AgentGarment:
         return "display" if self.display_at(level) is not None else "coarse"
 
     @property
+    def shape_limits(self):
+        """{"clamped": [...], "held": [...]}: the phenotypes a database garment cannot follow (clamped) or only
+        held at its training range; None for a skinned template, which follows every shape in [0, 1]."""
+        if self._engines:
+            report = getattr(self.base, "shape_report", None)
+            return None if report is None else {"clamped": list(report.clamped_names),
+                                                "held": list(report.held_names)}
+        return getattr(self.base, "shape_limits", None)
+
+    @property
     def faces(self) -> np.ndarray:
         """Faces of the frame dressed last (of the first level before any)."""
         return self.faces_at(self.level or 0)

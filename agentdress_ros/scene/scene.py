@@ -95,6 +95,8 @@ class Agent:
         self.shape_generation = 0
         self.beta = tuple(float(b) for b in spec.beta)
         self.specs = {}  # garment -> the GarmentSpec it was made from (a skinned fallback's, not the agent's)
+        self.errors: dict = {}  # garment -> what its last dress raised (its frame is then None)
+        self.dress_ms = 0.0  # the last dress, all garments
 
     def centre(self) -> np.ndarray:
         root = self.pose.values[3 * NUM_BONES:]
@@ -104,8 +106,17 @@ class Agent:
         return any(g.fading for g in self.garments.values())
 
     def dress(self, level: int) -> dict:
+        """{garment: (V, 3) float32 frame (an internal buffer, valid until the next dress) or None: posed as bones
+        only, or its dress raised (the error in `errors`: the other garments are dressed all the same)}."""
+        start = time.perf_counter()
         rotvecs, root = self.pose.rotvecs, self.pose.root_translation
-        out = {name: garment.dress(level, rotvecs, root) for name, garment in self.garments.items()}
+        out, self.errors = {}, {}
+        for name, garment in self.garments.items():
+            try:
+                out[name] = garment.dress(level, rotvecs, root)
+            except Exception as error:  # one garment's failure leaves the others (and the next frames) alone
+                out[name], self.errors[name] = None, error
+        self.dress_ms = 1e3 * (time.perf_counter() - start)
         if self.spec.extra_cost_ms > 0:  # an artificially expensive agent: spin for the injected cost
             end = time.perf_counter() + self.spec.extra_cost_ms * 1e-3
             while time.perf_counter() < end:
@@ -208,6 +219,7 @@ class Scene:
         self.level_cost: dict[int, float] = {}
         self.stats = TierStats([t.name for t in config.lod.tiers])
         self.on_error = on_error or (lambda message: None)
+        self._failures: list = []  # (agent name, the AgentSpec whose build failed, message), for take_failures
         self.prepare = prepare  # prepare(agent) on the worker thread after a build (e.g. topology messages)
         self._slots = 0
         self._ready: list[Agent] = []
@@ -337,10 +349,19 @@ class Scene:
                         agent.dirty = True
                         self.refits += 1
             except Exception as error:  # a bad request never stops the scene: report, keep what runs
-                self.on_error(f"agent {name!r}: cannot {'build' if kind == 'add' else 'refit'}: {error}")
+                message = f"agent {name!r}: cannot {'build' if kind == 'add' else 'refit'}: {error}"
+                with self._cond:
+                    self._failures.append((name, arg if kind == "add" else None, message))
+                self.on_error(message)
             finally:
                 with self._cond:
                     self._busy = False
+
+    def take_failures(self) -> list:
+        """[(agent name, AgentSpec of the failed build or None for a refit, message)] since the last call."""
+        with self._cond:
+            failures, self._failures = self._failures, []
+        return failures
 
     def stop(self):
         with self._cond:
