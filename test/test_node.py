@@ -27,7 +27,7 @@ from agentdress_ros.motion.procedural import make_motion  # noqa: E402
 from agentdress_ros.ros.harness import ros_node, spin_until  # noqa: E402
 from agentdress_ros.ros.messages import cloud_to_vertices, mesh_to_arrays  # noqa: E402
 
-from .conftest import TSHIRT_DATABASE, qos, running_node, set_parameters  # noqa: E402
+from .conftest import TSHIRT_DATABASE, call_node_service, qos, running_node, set_parameters  # noqa: E402
 
 VERTICES = {"tshirt": 1500, "trousers": 1200}
 START_SHAPE = [0.5, 0.6667, 0.5, 0.5, 0.5, 0.5]  # config/agentdress.yaml
@@ -208,6 +208,68 @@ def test_runtime_parameters(client, node_process):
     vertices, _ = publish_pose_until_answered(client, motion.rotvecs[0], motion.root_translation[0])
     assert len(vertices["tshirt"]) == len(meshes[-1].vertices) < before["tshirt"]
     assert len(vertices["trousers"]) == before["trousers"]
+
+
+#: A valid value other than the fixture's for every runtime parameter of the single agent (`agents` apart: the
+#: node refuses to switch between one agent and a crowd without a restart).
+OTHER_VALUES = {"rate_hz": 60.0, "keepalive_hz": 3.0, "marker_rate_hz": 1.0, "status_rate_hz": 5.0,
+                "inside_check_hz": 1.0, "publish_body": True, "answer_on_arrival": False, "frame_id": "elsewhere",
+                "garments": ["tshirt", "trousers", "longsleeve"], "garment_vertices": ["tshirt:1300", "trousers:1200"],
+                "garment_databases": [f"tshirt:{TSHIRT_DATABASE}"], "garment_models": ["tshirt:santesteban"], "engine": ["pose_model=examples", "neighbors=3"],
+                "skinned_fallback": True, "shape": [0.5, 0.6667, 0.5, 0.7, 0.5, 0.5], "stamp_jump_threshold_s": 1.0,
+                "warn_throttle_s": 2.0, "viewer_offset": [1.0, 0.0, 0.0, 0.5], "budget_ms": 6.0,
+                "lod.enabled": False, "lod.hysteresis": 0.4, "lod.fov_deg": 90.0, "lod.margin_deg": 5.0,
+                "lod.cull": False}
+SINGLE_STATUS_KEYS = ("node", "rate_hz", "tick_rate_hz", "tick_ms", "synthesis_ms", "published_frames",
+                      "keepalive_frames", "late_ticks", "rejected", "errors", "counts", "pid", "crowd",
+                      "unknown_joint_names", "garments", "shape", "model_generation", "inside")
+
+
+def test_every_runtime_parameter_and_status_key_of_the_single_agent(client, node_process):
+    """The single agent is a crowd of one: each runtime parameter is taken (and shows where it should), every
+    ~/status key is there, and the node answers poses before, while and after they change."""
+    from agentdress_ros.ros.params import PARAMETERS
+
+    node, executor, joints, shapes, state = client
+    runtime = {name for name, spec in PARAMETERS.items() if spec.runtime} - {"agents"}
+    assert set(OTHER_VALUES) == runtime, "a runtime parameter without a test value"
+    result = set_parameters(node, executor, agents=["someone"])[0]
+    assert not result.successful and "restart" in result.reason
+    status = state["status"][-1]
+    assert set(SINGLE_STATUS_KEYS) <= set(status), sorted(set(SINGLE_STATUS_KEYS) - set(status))
+    before = {name: value for name, value in status.items()}
+    generation = before["model_generation"]
+    from rclpy.parameter import parameter_value_to_python
+
+    answer = call_node_service(node, executor, "get_parameters", names=list(OTHER_VALUES))
+    original = {name: parameter_value_to_python(value) for name, value in zip(OTHER_VALUES, answer.values)}
+    try:
+        for name, value in OTHER_VALUES.items():
+            assert set_parameters(node, executor, **{name: value})[0].successful, name
+        bodies = []
+        node.create_subscription(PointCloud2, "/agentdress_node/body/points", bodies.append, BEST_EFFORT)
+        sleeves = []
+        node.create_subscription(PointCloud2, "/agentdress_node/longsleeve/points", sleeves.append, BEST_EFFORT)
+
+        def changed():
+            s = state["status"][-1]
+            return (s["rate_hz"] == 60.0 and set(s["garments"]) == {"tshirt", "trousers", "longsleeve", "body"}
+                    and s["shape"][3] == pytest.approx(0.7, abs=1e-6) and s["model_generation"] > generation
+                    and s["garments"]["tshirt"]["kind"] == "santesteban" and s["inside"].get("checks", 0) >= 1)
+
+        assert spin_until(executor, changed, 60.0), (state["status"][-1], node_process.output())
+        motion = make_motion("walk", fps=30.0)
+        _, clouds = publish_pose_until_answered(client, motion.rotvecs[4], motion.root_translation[4])
+        assert {c.header.frame_id for c in clouds.values()} == {"elsewhere"}
+        assert spin_until(executor, lambda: bodies and sleeves, 10.0)
+        status = state["status"][-1]
+        assert set(SINGLE_STATUS_KEYS) <= set(status)
+        assert status["crowd"]["lod"] is False and status["crowd"]["budget_ms"] == 6.0
+    finally:
+        for name, value in original.items():
+            set_parameters(node, executor, **{name: value})
+    assert spin_until(executor, lambda: set(state["status"][-1]["garments"]) == {"tshirt", "trousers"}, 60.0)
+    publish_pose_until_answered(client, make_motion("walk", fps=30.0).rotvecs[8], np.zeros(3))
 
 
 def test_node_runs_the_shipped_database_with_engine_knobs(tmp_path, body, ros_domain):

@@ -267,6 +267,26 @@ def test_an_agent_is_dressed_for_display_exactly_as_the_single_agent(scene, body
                                           model.synthesize(rotvecs, root))
 
 
+def test_a_batch_of_agents_pose_models_answers_as_each_one_alone(scene, walk):
+    """engine.pose_models.predict_batch over two agents' pose models (forks on shared examples): each answer is
+    that model's own evaluate from the same state; a batch whose lengths disagree is refused."""
+    from agentdress_ros.engine.pose_models import canonical_poses, predict_batch
+
+    agents = [_add(scene, "a"), _add(scene, "b", (0.2, 0.5, 0.5, 0.8, 0.3, 0.5))]
+    models = [agent.garments["tshirt"].base.pose_model for agent in agents]
+    thetas = list(canonical_poses(walk.rotvecs[[3, 9]]))
+    roots = [walk.root_translation[3], walk.root_translation[9]]
+    for model in models:
+        model.reset()
+    batch = [np.array(out) for out in predict_batch(models, thetas, roots)]
+    for model, theta, root, out in zip(models, thetas, roots, batch):
+        model.reset()
+        np.testing.assert_array_equal(out, model.evaluate(theta, root, None))
+    assert not np.array_equal(batch[0], batch[1])
+    with pytest.raises(ValueError, match="2 models for 1 poses"):
+        predict_batch(models, thetas[:1], roots[:1])
+
+
 def test_an_agent_runs_the_garment_model_its_spec_names(scene, body, walk):
     """garment_models in a crowd: a garment whose spec names Santesteban et al.'s system dresses, at every tier,
     exactly as the single agent's model of that name (the same maker, the same shape)."""

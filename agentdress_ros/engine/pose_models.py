@@ -14,6 +14,9 @@ reads it before the next call. Later models (learned, volumetric) register the s
 A model with arrays of its own stores them in a database group through a Codec registered beside its code
 (engine.database.register_codec, its module listed in engine.codecs), as the learned models at the end of this
 module do; the database reads it into `db.<codec name>`.
+
+Many agents' models of one kind answer together through `predict_batch` (a crowd's frame): a model class with an
+`evaluate_batch(models, thetas, roots, frames)` classmethod runs them as one batch, any other one at a time.
 """
 from __future__ import annotations
 
@@ -77,6 +80,23 @@ def make_pose_model(name: str, context: PoseModelContext) -> PoseModel:
     if name not in POSE_MODELS:
         raise ValueError(f"unknown pose model {name!r}; choose one of {sorted(POSE_MODELS)}")
     return POSE_MODELS[name](context)
+
+
+def predict_batch(models, thetas, roots, frames=None) -> list:
+    """[(3, V)] of each agent's pose model `models[i]` (forks: their own buffers) for its pose thetas[i] (B, 3), root
+    translation roots[i] (3,) and sequence frame frames[i] (None: none): the models' `evaluate_batch` classmethod
+    where they are all of one class that has it (one product per layer over the batch), else each `evaluate` in
+    turn (the same numbers either way)."""
+    models = list(models)
+    frames = [None] * len(models) if frames is None else list(frames)
+    if not (len(thetas) == len(roots) == len(frames) == len(models)):
+        raise ValueError(f"predict_batch: {len(models)} models for {len(thetas)} poses, {len(roots)} roots and "
+                         f"{len(frames)} frames")
+    kinds = {type(model) for model in models}
+    batch = getattr(next(iter(kinds)), "evaluate_batch", None) if len(kinds) == 1 else None
+    if batch is not None:
+        return list(batch(models, thetas, roots, frames))
+    return [model.evaluate(theta, root, frame) for model, theta, root, frame in zip(models, thetas, roots, frames)]
 
 
 def canonical_poses(poses: np.ndarray) -> np.ndarray:

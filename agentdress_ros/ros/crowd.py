@@ -590,6 +590,7 @@ class Crowd:
             if vertices is None and g not in agent.errors:  # posed as bones only (_sync_bones_only)
                 if g in entity.bones and np.isfinite(garment.base.transforms).all():
                     self._publish_bones(agent, entity, g, stamp_ns)
+                    node.stats.counts[f"bones_only_frames:{label}"] += 1
                 continue
             key = (agent.name, g)
             if vertices is None or not np.isfinite(vertices).all():

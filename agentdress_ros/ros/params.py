@@ -310,7 +310,7 @@ PARAMETERS: dict[str, Spec] = {
     # Crowd mode (agentdress_ros.ros.crowd): one node dresses every agent listed.
     "agents": Spec([], "agent names: each has <agent>/joint_states, <agent>/body_shape in and ~/<agent>/<garment>/"
                        "points, mesh out, taking the parameters above overridden by agent.<agent>.<parameter> (YAML); "
-                       "agents may be added and removed at run time; empty = the single agent of today's topics",
+                       "agents may be added and removed at run time; empty = one agent (a crowd of one) on the node's own topics",
                            check=names("agent", "a letter, then letters, digits, _")),
     "viewer_topic": Spec("viewer_pose", "geometry_msgs/PoseStamped input of the viewer (headset), crowd mode; "
                                         "empty = no viewer (every agent near, none culled)", runtime=False,
