@@ -101,7 +101,8 @@ def _accuracy_rows():
 def _crowd_row():
     run = _read("docs/bench/crowd_cpu.json")["result"][0]
     near = run["cpu_ms_per_agent_frame"]["near"]
-    return ("agents per core: CPU per agent frame at the near tier (T-shirt + trousers, node default engine, packed "
+    return ("agents per core: CPU per agent frame at the near tier (T-shirt + trousers, node default engine, dressed "
+            "for display as the single agent: layered and refined; packed "
             "into cloud bytes; DDS not counted)",
             f"{near:.2f} ms, so one core's CPU covers {int(1000.0 / (POSE_RATE_HZ * near))} agents at "
             f"{POSE_RATE_HZ:.0f} poses a second", f"`agentdress bench crowd --modes cpu --agents {run['agents']}`",
