@@ -141,6 +141,15 @@ def _loop_arc(points, loop):
 
 
 @numba.njit(cache=True, nogil=True)
+def _loop_span(points, loops, starts, k, sigma):
+    """(first position, length, arc (L,), total length, smoothing width) of loop k of the flat loops (starts (K+1,))
+    over points (V, 3)."""
+    a, n = starts[k], starts[k + 1] - starts[k]
+    arc, total = _loop_arc(points, loops[a:a + n])
+    return a, n, arc, total, loop_width(sigma, total)
+
+
+@numba.njit(cache=True, nogil=True)
 def _gauss_weights(arc, total, width):
     """The Gaussian of `width` over the arc length arc (L,) of a closed loop (arc[0] = 0, total its length) as a
     sparse (L, L) matrix (starts (L + 1,), columns, weights; rows sum to 1): each vertex weighs the half of each edge
@@ -198,10 +207,7 @@ def _apply_sparse(starts, columns, weights, points, out):
 def _smooth_loops(vertices, loops, starts, ring, ring_edge, count, sigma):
     move = np.zeros((loops.shape[0], 3))
     for k in range(starts.shape[0] - 1):
-        a, b = starts[k], starts[k + 1]
-        n = b - a
-        arc, total = _loop_arc(vertices, loops[a:b])
-        width = loop_width(sigma, total)
+        a, n, arc, total, width = _loop_span(vertices, loops, starts, k, sigma)
         if width <= 0.0:
             continue
         points = np.empty((n, 3))
@@ -236,10 +242,7 @@ def _spread_moves(vertices, before, loops, starts, ring, ring_edge, count, sigma
     chosen = np.arange(n_loop)  # whose move each loop vertex takes, and faded by how much
     fade = np.ones(n_loop)
     for k in range(starts.shape[0] - 1):
-        a, b = starts[k], starts[k + 1]
-        n = b - a
-        arc, total = _loop_arc(before, loops[a:b])
-        width = loop_width(sigma, total)
+        a, n, arc, total, width = _loop_span(before, loops, starts, k, sigma)
         if width <= 0.0:
             continue
         reach = min(3.0 * width, 0.5 * total)

@@ -415,12 +415,12 @@ class Crowd:
         agent's body shapes."""
         turn = self._shape_turn % SHAPE_POLL_TICKS
         agents = self.scene.agents
+        small = len(self.entities) <= ARRIVAL_AGENTS  # a small crowd looks at every shape on every tick
         for i, (name, entity) in enumerate(sorted(self.entities.items())):
             agent = agents.get(name)
-            shape_turn = i % SHAPE_POLL_TICKS == turn
+            shape_turn = small or i % SHAPE_POLL_TICKS == turn
             # an agent the next tick will not dress (culled, or not due at its tier's rate) leaves its poses in
             # the keep-last queue: taking them is most of the tick's fixed cost in a large crowd
-            shape_turn = shape_turn or len(self.entities) <= ARRIVAL_AGENTS  # a small crowd: every tick
             if shape_turn or agent is None or self.scene.needs_input(agent):
                 self._take_poses(name, entity, agent)
             if shape_turn:
@@ -510,11 +510,8 @@ class Crowd:
             self.node.stats.counts["arrivals_left_to_tick"] += 1
             return
         # A tick about to start (or overdue) would wait for this agent: leave its pose to the tick, which dresses
-        # it among the first (nearest first) inside the budget, instead of making the other agents late. An agent
-        # alone has no one to make late (and its wall-clock estimate, on a loaded core, would keep every pose
-        # waiting for a tick).
-        if agent.tier is not None and len(self.scene.agents) > 1 \
-                and self.node.ms_until_tick() < self.scene.estimate(agent, agent.tier):
+        # it among the first (nearest first) inside the budget, instead of making that tick late.
+        if agent.tier is not None and self.node.ms_until_tick() < self.scene.estimate(agent, agent.tier):
             self.node.stats.counts["arrivals_left_to_tick"] += 1
             return  # its new pose version makes it a candidate of that tick
         start = time.perf_counter()

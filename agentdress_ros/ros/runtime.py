@@ -43,7 +43,6 @@ class ModelSet:
     clamped: bool
     warnings: list = field(default_factory=list)
     generation: int = 0
-    topology: dict = field(default_factory=dict)  # name -> topology message, filled by the worker's `prepare`
 
 
 def _build_garment(spec: GarmentSpec, body, beta, skinned_fallback: bool, warnings: list):

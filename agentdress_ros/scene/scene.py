@@ -110,7 +110,9 @@ class Agent:
         only, or its dress raised (the error in `errors`: the other garments are dressed all the same)}."""
         start = time.perf_counter()
         rotvecs, root = self.pose.rotvecs, self.pose.root_translation
-        out, self.errors = {}, {}
+        out = {}
+        if self.errors:  # the last frame's failures (a new dict only then: none per frame on the hot path)
+            self.errors = {}
         for name, garment in self.garments.items():
             try:
                 out[name] = garment.dress(level, rotvecs, root)
